@@ -1,0 +1,220 @@
+"""Generate a synthetic benchmark scene bundle: a procedural street rendered by Mitsuba 3.
+
+Ground truth (path-traced frames, G-buffers, LiDAR, relit frames) comes from Mitsuba only, never
+from this project's renderer. Deterministic for a given :class:`SynthConfig` (Mitsuba's sampler
+is seeded per frame).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+
+from core.bundle import BundleWriter, Camera
+from core.errors import ConfigError
+from core.synth.config import SynthConfig
+from core.synth.street import EGO_LANE_Y, make_street
+
+#: Where the bundled real HDRIs live (CC0, see data/hdri/README.md).
+HDRI_DIR = Path(__file__).resolve().parents[2] / "data" / "hdri"
+
+
+def resolve_envmap(name_or_path: str) -> Path:
+    """A bundled HDRI name (``city``) or a path to an .exr/.hdr file."""
+    p = Path(name_or_path)
+    if p.suffix.lower() in (".exr", ".hdr"):
+        if not p.is_file():
+            raise ConfigError(f"envmap: file not found: {p}")
+        return p
+    cand = HDRI_DIR / f"{name_or_path}.exr"
+    if not cand.is_file():
+        known = sorted(q.stem for q in HDRI_DIR.glob("*.exr"))
+        raise ConfigError(f"envmap: unknown environment map {name_or_path!r} (bundled: {known})")
+    return cand
+
+
+def _columns_shift(env: np.ndarray, degrees: float) -> int:
+    return int(round(degrees / 360.0 * env.shape[1])) % env.shape[1]
+
+
+def rotate_envmap(env: np.ndarray, degrees: float) -> np.ndarray:
+    """Rotate an equirect map about +z by ``degrees`` (counter-clockwise seen from above), rounded
+    to whole columns so the result is exact: a feature at azimuth phi moves to phi + degrees."""
+    return np.roll(env, -_columns_shift(env, degrees), axis=1)
+
+
+def load_envmap(name_or_path: str, rotation_deg: float = 0.0) -> np.ndarray:
+    from core.io.envmap_file import read_envmap
+
+    return rotate_envmap(read_envmap(resolve_envmap(name_or_path)), rotation_deg)
+
+
+def ego_positions(cfg: SynthConfig) -> np.ndarray:
+    """Ego x position [T] of each time index, metres."""
+    return np.arange(cfg.num_frames) * cfg.ego_speed * cfg.frame_dt
+
+
+def camera_pose(cfg: SynthConfig, x: float, y: float) -> np.ndarray:
+    """OpenCV cam_to_world [4, 4] of a forward-looking camera at (x, y, camera height), pitched down."""
+    p = math.radians(cfg.camera_pitch_deg)
+    fwd = np.array([math.cos(p), 0.0, -math.sin(p)])
+    right = np.array([0.0, -1.0, 0.0])  # looking +x with z up, right is -y
+    down = np.cross(fwd, right)
+    m = np.eye(4)
+    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = right, down, fwd, [x, y, cfg.camera_height_m]
+    return m
+
+
+def intrinsics(cfg: SynthConfig) -> Camera:
+    fx = cfg.width / 2.0 / math.tan(math.radians(cfg.hfov_deg) / 2.0)
+    return Camera("front", cfg.width, cfg.height, fx, fx, cfg.width / 2.0, cfg.height / 2.0)
+
+
+# --------------------------------------------------------------------------------------------
+# per-process render work (workers rebuild the street from the config: it is deterministic)
+# --------------------------------------------------------------------------------------------
+_CACHE: dict = {}
+
+
+def _street(cfg: SynthConfig):
+    key = ("street", cfg)
+    if key not in _CACHE:
+        _CACHE[key] = make_street(cfg, ego_positions(cfg))
+    return _CACHE[key]
+
+
+def _env(name: str, rot: float) -> np.ndarray:
+    key = ("env", name, rot)
+    if key not in _CACHE:
+        _CACHE[key] = load_envmap(name, rot)
+    return _CACHE[key]
+
+
+def _render_job(job: tuple) -> tuple:
+    from core.synth.mitsuba_backend import PinholeCamera, render_beauty, render_gbuffers
+
+    kind, key, cfg, t, c2w, env_name, env_rot, seed = job
+    cam_i = intrinsics(cfg)
+    cam = PinholeCamera(c2w, cam_i.fx, cam_i.fy, cam_i.cx, cam_i.cy, cfg.width, cfg.height)
+    parts = _street(cfg).parts_at(t)
+    if kind == "gbuffer":
+        return kind, key, render_gbuffers(parts, cam)
+    img = render_beauty(parts, _env(env_name, env_rot), cam, spp=cfg.spp, max_depth=cfg.max_depth, seed=seed)
+    return kind, key, img
+
+
+def simulate_lidar(cfg: SynthConfig, t: int, x: float) -> np.ndarray:
+    """A spinning LiDAR at the ego position: float32 [N, 6] world (origin xyz, hit xyz)."""
+    from core.synth.mitsuba_backend import RayCaster
+
+    if cfg.lidar_beams == 0:
+        return np.zeros((0, 6), np.float32)
+    elev = np.radians(np.linspace(-25.0, 5.0, cfg.lidar_beams))
+    az = np.linspace(0.0, 2 * math.pi, cfg.lidar_azimuth_steps, endpoint=False)
+    E, A = np.meshgrid(elev, az, indexing="ij")
+    d = np.stack([np.cos(E) * np.cos(A), np.cos(E) * np.sin(A), np.sin(E)], -1).reshape(-1, 3)
+    o = np.tile([x, EGO_LANE_Y, cfg.lidar_height_m], (len(d), 1))
+    dist = RayCaster(_street(cfg).parts_at(t)).cast(o, d, cfg.lidar_range_m)
+    ok = np.isfinite(dist)
+    pts = o[ok] + d[ok] * dist[ok, None]
+    return np.concatenate([o[ok], pts], 1).astype(np.float32)
+
+
+def generate_scene(cfg: SynthConfig, out_dir: str | Path, *, name: str | None = None,
+                   overwrite: bool = False, progress: bool = True, workers: int | None = None) -> Path:
+    """Render the street of ``cfg`` with Mitsuba and write a scene bundle to ``out_dir``.
+
+    Train frames follow the ego lane; test (novel-view) frames a parallel path offset by
+    ``cfg.test_offset_m``; relit ground truth is rendered for test frames. Returns the bundle root.
+    """
+    from tqdm import tqdm
+
+    from core.tonemap import hdr_to_ldr, ldr_to_uint8
+
+    name = name or f"street_seed{cfg.seed}"
+    env_train = _env(cfg.envmap, cfg.envmap_rotation_deg)  # fail early on a bad envmap name
+    for n in cfg.relight_envmaps:
+        _env(n, 0.0)  # fail early on a bad envmap name
+    ego_x = ego_positions(cfg)
+    frames = []  # (frame_id, split, t, c2w)
+    for t, x in enumerate(ego_x):
+        frames.append((f"train_{t:03d}", "train", t, camera_pose(cfg, x, EGO_LANE_Y)))
+    for t, x in enumerate(ego_x):
+        frames.append((f"test_{t:03d}", "test", t, camera_pose(cfg, x, EGO_LANE_Y + cfg.test_offset_m)))
+
+    jobs = []
+    for i, (fid, split, t, c2w) in enumerate(frames):
+        jobs.append(("gbuffer", fid, cfg, t, c2w, None, 0.0, 0))
+        jobs.append(("beauty", fid, cfg, t, c2w, cfg.envmap, cfg.envmap_rotation_deg, cfg.seed * 1000 + i))
+    test_frames = [f for f in frames if f[1] == "test"][:: cfg.relight_every]
+    for k, env_name in enumerate(cfg.relight_envmaps):
+        for i, (fid, split, t, c2w) in enumerate(test_frames):
+            jobs.append(("relit:" + env_name, fid, cfg, t, c2w, env_name, 0.0, cfg.seed * 1000 + 500 + 50 * k + i))
+
+    results: dict = {}
+    n_workers = workers if workers is not None else min(2, os.cpu_count() or 1)
+    bar = tqdm(total=len(jobs) + cfg.num_frames, desc=f"generate {name}", unit="render", disable=not progress)
+    if n_workers > 1:
+        import multiprocessing as mp
+
+        with ProcessPoolExecutor(n_workers, mp_context=mp.get_context("spawn")) as pool:
+            for kind, key, out in pool.map(_render_job, jobs):
+                results[(kind, key)] = out
+                bar.update()
+    else:
+        for job in jobs:
+            kind, key, out = _render_job(job)
+            results[(kind, key)] = out
+            bar.update()
+
+    lidar = []
+    for t, x in enumerate(ego_x):
+        lidar.append(simulate_lidar(cfg, t, x))
+        bar.update()
+    bar.close()
+
+    # exposure: the configured one, so the LDR frames of all scenes share one tone map
+    exposure, gamma = cfg.exposure, cfg.gamma
+    cam = intrinsics(cfg)
+    street = _street(cfg)
+    w = BundleWriter(out_dir, name, overwrite=overwrite,
+                     description=f"Synthetic street (seed {cfg.seed}) rendered by Mitsuba 3 under {cfg.envmap}",
+                     source={"kind": "synthetic", "generator": "core.synth", "config": _jsonable(asdict(cfg))},
+                     ldr_exposure=exposure, ldr_gamma=gamma)
+    with w:
+        w.set_times([t * cfg.frame_dt for t in range(cfg.num_frames)])
+        w.add_camera(cam)
+        for fid, split, t, c2w in frames:
+            g = results[("gbuffer", fid)]
+            hdr = results[("beauty", fid)]
+            ldr = ldr_to_uint8(hdr_to_ldr(hdr, exposure, gamma))
+            gt = {"rgb": hdr, "albedo": g["albedo"], "roughness": g["roughness"], "metallic": g["metallic"],
+                  "normal": g["normal"], "depth": g["depth"]}
+            w.add_frame(fid, cam.id, t, c2w, image=ldr, split=split, sky_mask=g["sky"], ground_truth=gt)
+        for t, pts in enumerate(lidar):
+            w.add_lidar(t, pts)
+        for car in street.cars:
+            w.add_object(car.id, "car", car.size, car.poses)
+        env_name_train = resolve_envmap(cfg.envmap).stem
+        if _columns_shift(env_train, cfg.envmap_rotation_deg) == 0:  # unrotated: copy the file
+            w.set_ground_truth_envmap(None, env_name_train, 0.0, envmap_file=resolve_envmap(cfg.envmap))
+        else:
+            w.set_ground_truth_envmap(env_train, env_name_train, cfg.envmap_rotation_deg)
+        for env_name in cfg.relight_envmaps:
+            w.add_relit(resolve_envmap(env_name).stem, None,
+                        {fid: results[("relit:" + env_name, fid)] for fid, *_ in test_frames},
+                        envmap_file=resolve_envmap(env_name))
+        return w.finish()
+
+
+def _jsonable(d):
+    if isinstance(d, dict):
+        return {k: _jsonable(v) for k, v in d.items()}
+    if isinstance(d, (list, tuple)):
+        return [_jsonable(v) for v in d]
+    return d
