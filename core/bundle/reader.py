@@ -107,7 +107,7 @@ def _check_files(root: Path, m: Manifest) -> list[BundleIssue]:
         if pts.ndim != 2 or pts.shape[1] != 6:
             issues.append(BundleIssue(s.file, fld, f"expected shape [N, 6] (origin xyz, point xyz), "
                                                    f"got {list(pts.shape)}"))
-        elif pts.dtype.kind != "f":
+        elif pts.dtype != np.float32:
             issues.append(BundleIssue(s.file, fld, f"expected float32, got {pts.dtype}"))
         elif not np.all(np.isfinite(pts)):
             issues.append(BundleIssue(s.file, fld, "contains NaN or Inf"))

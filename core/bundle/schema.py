@@ -51,6 +51,7 @@ FORMAT_NAME = "brdfusion-scene-bundle"
 SCHEMA_VERSION = 1
 MANIFEST_NAME = "bundle.json"
 SPLITS = ("train", "test")
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 #: Layers every ground-truth frame EXR must hold, with their channel counts.
 GT_FRAME_LAYERS = {"rgb": 3, "albedo": 3, "roughness": 1, "metallic": 1, "normal": 3, "depth": 1}
 
@@ -273,7 +274,7 @@ def parse_manifest(d: Any) -> Manifest:
     if fmt != FORMAT_NAME:
         raise BundleError(f"unknown format {fmt!r}, expected {FORMAT_NAME!r}", _WHERE, "format")
     version = _req(d, "version", "version")
-    if version != SCHEMA_VERSION:
+    if type(version) is not int or version != SCHEMA_VERSION:
         raise BundleError(f"unknown version {version!r}; this reader supports version "
                           f"{SCHEMA_VERSION}", _WHERE, "version")
     name = _str(_req(d, "name", "name"), "name")
@@ -329,9 +330,12 @@ def parse_manifest(d: Any) -> Manifest:
         split = f.get("split", "train")
         if split not in SPLITS:
             raise BundleError(f"split must be one of {SPLITS}, got {split!r}", _WHERE, f"{w}.split")
+        image = _relpath(_req(f, "image", w), f"{w}.image")
+        if not image.lower().endswith(IMAGE_SUFFIXES):
+            raise BundleError(f"image must be one of {IMAGE_SUFFIXES}, got {image!r}", _WHERE, f"{w}.image")
         frames.append(Frame(
             id=fid,
-            image=_relpath(_req(f, "image", w), f"{w}.image"),
+            image=image,
             camera=cam,
             time_index=ti,
             cam_to_world=parse_rigid(_req(f, "cam_to_world", w), f"{w}.cam_to_world"),
@@ -341,16 +345,26 @@ def parse_manifest(d: Any) -> Manifest:
         ))
 
     lidar: list[LidarSweep] = []
-    for i, s in enumerate(d.get("lidar", []) or []):
+    lidar_raw = d.get("lidar", []) or []
+    if not isinstance(lidar_raw, list):
+        raise BundleError("expected a list of sweeps", _WHERE, "lidar")
+    seen_t: set[int] = set()
+    for i, s in enumerate(lidar_raw):
         w = f"lidar[{i}]"
         ti = _num(_req(s, "time_index", w), f"{w}.time_index", integer=True)
         if not (0 <= ti < len(times)):
             raise BundleError(f"time_index {ti} outside 0..{len(times) - 1}", _WHERE, f"{w}.time_index")
+        if ti in seen_t:
+            raise BundleError(f"two sweeps for time_index {ti}", _WHERE, f"{w}.time_index")
+        seen_t.add(ti)
         lidar.append(LidarSweep(ti, _relpath(_req(s, "file", w), f"{w}.file")))
 
     objects: list[ObjectTrack] = []
     seen_obj: set[str] = set()
-    for i, o in enumerate(d.get("objects", []) or []):
+    objects_raw = d.get("objects", []) or []
+    if not isinstance(objects_raw, list):
+        raise BundleError("expected a list of objects", _WHERE, "objects")
+    for i, o in enumerate(objects_raw):
         w = f"objects[{i}]"
         oid = _str(_req(o, "id", w), f"{w}.id")
         if oid in seen_obj:
@@ -373,14 +387,21 @@ def parse_manifest(d: Any) -> Manifest:
         objects.append(ObjectTrack(oid, _str(o.get("class", "unknown"), f"{w}.class"), size_t, poses))
 
     ldr = d.get("ldr", {}) or {}
+    if not isinstance(ldr, dict):
+        raise BundleError("expected an object {exposure, gamma}", _WHERE, "ldr")
     exposure = _num(ldr.get("exposure", 1.0), "ldr.exposure", positive=True)
     gamma = _num(ldr.get("gamma", 2.2), "ldr.gamma", positive=True)
 
     gt = None
     if d.get("ground_truth"):
         g = d["ground_truth"]
+        if not isinstance(g, dict):
+            raise BundleError("expected an object", _WHERE, "ground_truth")
+        relit_raw = g.get("relit", []) or []
+        if not isinstance(relit_raw, list):
+            raise BundleError("expected a list", _WHERE, "ground_truth.relit")
         relit = []
-        for i, r in enumerate(g.get("relit", []) or []):
+        for i, r in enumerate(relit_raw):
             w = f"ground_truth.relit[{i}]"
             fr = _req(r, "frames", w)
             if not isinstance(fr, dict):
@@ -401,9 +422,12 @@ def parse_manifest(d: Any) -> Manifest:
             relit=tuple(relit),
         )
 
+    source = d.get("source", {}) or {}
+    if not isinstance(source, dict):
+        raise BundleError("expected an object", _WHERE, "source")
     return Manifest(
         name=name, times=times, cameras=cameras, frames=tuple(frames), lidar=tuple(lidar),
         objects=tuple(objects), ldr_exposure=exposure, ldr_gamma=gamma, ground_truth=gt,
-        description=str(d.get("description", "")), source=dict(d.get("source", {}) or {}),
+        description=str(d.get("description", "")), source=dict(source),
         version=version,
     )

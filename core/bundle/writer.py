@@ -34,10 +34,12 @@ class BundleWriter:
     def __init__(self, root: str | Path, name: str, *, overwrite: bool = False, description: str = "",
                  source: dict | None = None, ldr_exposure: float = 1.0, ldr_gamma: float = 2.2):
         self.root = Path(root)
+        if self.root.exists() and not self.root.is_dir():
+            raise ConfigError(f"root: {self.root} exists and is not a directory")
         if self.root.exists() and any(self.root.iterdir()) and not overwrite:
             raise ConfigError(f"root: {self.root} exists and is not empty (pass overwrite=True to replace it)")
         self.root.parent.mkdir(parents=True, exist_ok=True)
-        self._stage = Path(tempfile.mkdtemp(prefix=f".{self.root.name}.staging-", dir=self.root.parent))
+        self._stage_dir: Path | None = None  # created on the first write
         self.name = name
         self.description = description
         self.source = dict(source or {})
@@ -53,6 +55,19 @@ class BundleWriter:
         self._done = False
 
     # -------------------------------------------------------------------------------------------
+    @property
+    def _stage(self) -> Path:
+        if self._stage_dir is None:
+            self._stage_dir = Path(tempfile.mkdtemp(prefix=f".{self.root.name}.staging-", dir=self.root.parent))
+        return self._stage_dir
+
+    @staticmethod
+    def _rigid(m, arg: str) -> np.ndarray:
+        try:
+            return parse_rigid(m, arg)
+        except BundleError as e:
+            raise ConfigError(f"{arg}: {str(e).split(': ', 1)[-1]}") from None
+
     def _out(self, rel: str) -> Path:
         p = self._stage / rel
         p.parent.mkdir(parents=True, exist_ok=True)
@@ -78,9 +93,16 @@ class BundleWriter:
 
         if camera not in self.cameras:
             raise ConfigError(f"camera: unknown camera {camera!r}; add it first")
-        parse_rigid(cam_to_world, f"cam_to_world of frame {frame_id}")
+        if any(f.id == frame_id for f in self.frames):
+            raise ConfigError(f"frame_id: duplicate frame id {frame_id!r}")
+        self._rigid(cam_to_world, f"cam_to_world (frame {frame_id})")
         if (image is None) == (image_file is None):
             raise ConfigError("image/image_file: give exactly one")
+        if image_file is not None:
+            if not Path(image_file).is_file():
+                raise ConfigError(f"image_file: not found: {image_file}")
+            if Path(image_file).suffix.lower() not in (".png", ".jpg", ".jpeg"):
+                raise ConfigError(f"image_file: must be .png, .jpg or .jpeg, got {image_file}")
         if image is not None:
             rel = f"images/{frame_id}.png"
             write_png(self._out(rel), image)
@@ -113,6 +135,8 @@ class BundleWriter:
         if pts.ndim != 2 or pts.shape[1] != 6:
             raise ShapeError(f"points: expected [N, 6], got {list(pts.shape)}")
         require_finite_np(pts, "points")
+        if any(s.time_index == int(time_index) for s in self.lidar):
+            raise ConfigError(f"time_index: a sweep for time index {time_index} was already added")
         rel = f"lidar/{int(time_index):04d}.npy"
         np.save(self._out(rel), pts)
         self.lidar.append(LidarSweep(int(time_index), rel))
@@ -120,7 +144,7 @@ class BundleWriter:
     def add_object(self, obj_id: str, cls: str, size, poses: dict[int, np.ndarray]) -> None:
         """A tracked rigid object: box ``size`` (l, w, h metres), poses time_index -> obj_to_world."""
         for t, m in poses.items():
-            parse_rigid(m, f"poses[{t}] of object {obj_id}")
+            self._rigid(m, f"poses[{t}] (object {obj_id})")
         self.objects.append(ObjectTrack(obj_id, cls, tuple(float(s) for s in size),
                                         {int(t): np.asarray(m, np.float64) for t, m in poses.items()}))
 
@@ -198,18 +222,25 @@ class BundleWriter:
             if self.root.exists():
                 old = self.root.with_name(f".{self.root.name}.old-{os.getpid()}")
                 os.replace(self.root, old)
-            os.replace(self._stage, self.root)
+            try:
+                os.replace(self._stage, self.root)
+            except BaseException:
+                if old is not None:  # put the previous bundle back
+                    os.replace(old, self.root)
+                raise
             if old is not None:
                 shutil.rmtree(old, ignore_errors=True)
         except BaseException:
             shutil.rmtree(self._stage, ignore_errors=True)
+            self._done = True
             raise
         self._done = True
         return self.root
 
     def abort(self) -> None:
         """Drop the staging directory; the target is untouched."""
-        shutil.rmtree(self._stage, ignore_errors=True)
+        if self._stage_dir is not None:
+            shutil.rmtree(self._stage_dir, ignore_errors=True)
         self._done = True
 
     def __enter__(self) -> "BundleWriter":
