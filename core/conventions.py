@@ -147,3 +147,30 @@ def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = (0.0, 0.0, 1.0
     m = np.eye(4)
     m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = right, down, fwd, eye
     return m
+
+
+def direction_to_uv_torch(dirs_world, height: int, width: int):
+    """torch twin of :func:`direction_to_uv` (differentiable in the directions away from the
+    poles). dirs_world: [..., 3] world. Returns (u, v) in pixels, u in [0, W), v in [0, H]."""
+    import torch
+
+    from core.numerics import clamped_acos, safe_normalize
+
+    d = safe_normalize(dirs_world)
+    theta = clamped_acos(d[..., 2])
+    phi = torch.atan2(d[..., 1], d[..., 0])
+    v = theta / math.pi * height
+    u = torch.remainder(0.25 - phi / (2.0 * math.pi), 1.0) * width
+    return u, v
+
+
+def camera_ray_directions(cam_to_world: np.ndarray, fx: float, fy: float, cx: float, cy: float,
+                          width: int, height: int) -> np.ndarray:
+    """World directions [H, W, 3] (unit) of the rays through every pixel centre."""
+    u = np.arange(width) + 0.5
+    v = np.arange(height) + 0.5
+    uu, vv = np.meshgrid(u, v)
+    d_cam = np.stack([(uu - cx) / fx, (vv - cy) / fy, np.ones_like(uu)], -1)
+    c2w = np.asarray(cam_to_world, np.float64)
+    d = d_cam @ c2w[:3, :3].T
+    return d / np.linalg.norm(d, axis=-1, keepdims=True)

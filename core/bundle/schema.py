@@ -9,7 +9,8 @@ use ``/`` and never leave it)::
     sky_masks/<frame_id>.png            optional, 8-bit, non-zero = sky
     lidar/<time_index:04d>.npy          optional, float32 [N, 6] world frame, metres:
                                         sensor origin xyz, hit point xyz
-    ground_truth/frames/<frame_id>.exr  synthetic only: layers rgb (HDR beauty), albedo (R,G,B),
+    ground_truth/frames/<frame_id>.exr  synthetic only (half float, ZIP; HDR clamped at 65504):
+                                        layers rgb (HDR beauty), albedo (R,G,B),
                                         roughness (Y), metallic (Y), normal (X,Y,Z world, unit),
                                         depth (Y, camera z-depth in metres, 0 on sky)
     ground_truth/envmaps/<name>.exr     synthetic only: equirect HDR maps in the project's convention

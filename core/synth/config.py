@@ -82,7 +82,7 @@ PROFILES: dict[str, SynthConfig] = {
     "tiny": SynthConfig(width=48, height=32, num_frames=2, spp=8, max_depth=3, lidar_beams=8,
                         lidar_azimuth_steps=90, relight_envmaps=("sunset",), num_parked_cars=2,
                         num_moving_cars=1),
-    "quick": SynthConfig(),
+    "quick": SynthConfig(relight_every=3, lidar_beams=16),
     "benchmark": SynthConfig(width=320, height=213, num_frames=24, spp=256, max_depth=5),
 }
 

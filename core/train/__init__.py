@@ -1,0 +1,1 @@
+"""Optimisation: initialisation from LiDAR, adaptive density control, the training stages."""
