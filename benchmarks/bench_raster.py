@@ -17,6 +17,9 @@ high-water mark (``VmHWM``): the delta is what a forward + backward adds at peak
 torch allocations, the kernels' own buffers and the input gradients. (Falls back to the
 ``ru_maxrss`` delta where clear_refs is unavailable, which can under-report.)
 
+Other processes compete for the two cores on shared machines: the 1-minute load average before
+and after each configuration is printed and stored, so a slow run can be told from a slow kernel.
+
 Usage: ``python benchmarks/bench_raster.py [--profile quick|full] [--threads N]``.
 Writes ``benchmarks/results/raster.json`` (a JSON list of runs).
 """
@@ -29,7 +32,6 @@ import json
 import math
 import os
 import platform
-import resource
 import statistics
 import subprocess
 import sys
@@ -160,11 +162,13 @@ def run(profile: str, threads: int | None, runs: int, warmup: int, overlap: floa
         contributed = float(normal.stats[..., 1].double().mean())
         fwd, bwd = [], []
         weights = None
+        load_before = os.getloadavg()[0]
         for i in range(warmup + runs):
             _, f_ms, b_ms, weights = _forward_backward(tensors, cam, settings, weights)
             if i >= warmup:
                 fwd.append(f_ms)
                 bwd.append(b_ms)
+        load_after = os.getloadavg()[0]
         peak = measure_memory(width, height, n, settings.num_threads)
         row = {
             "width": width,
@@ -173,6 +177,8 @@ def run(profile: str, threads: int | None, runs: int, warmup: int, overlap: floa
             "forward_ms": round(statistics.median(fwd), 2),
             "backward_ms": round(statistics.median(bwd), 2),
             "peak_extra_mb": round(peak, 1),
+            "forward_ms_min": round(min(fwd), 2),
+            "backward_ms_min": round(min(bwd), 2),
             "threads": settings.num_threads,
             "runs": runs,
             "profile": profile,
@@ -183,14 +189,17 @@ def run(profile: str, threads: int | None, runs: int, warmup: int, overlap: floa
             "tile_pairs": normal.num_tile_pairs,
             "visible": normal.num_visible,
             "mean_opacity": round(float(normal.opacity.mean()), 4),
+            "load_avg_1min": [round(load_before, 2), round(load_after, 2)],
             "machine": mach,
             "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
         }
         results.append(row)
         print(f"{width}x{height} ({width * height} px), {n} Gaussians: forward {row['forward_ms']:.1f} ms, "
-              f"backward {row['backward_ms']:.1f} ms (medians of {runs}), peak extra {row['peak_extra_mb']:.0f} MB | "
+              f"backward {row['backward_ms']:.1f} ms (medians of {runs}; min {row['forward_ms_min']:.1f} / "
+              f"{row['backward_ms_min']:.1f}), peak extra {row['peak_extra_mb']:.0f} MB | "
               f"per pixel: overlapping {overl:.1f}, evaluated {evaluated:.1f}, contributed {contributed:.1f} | "
-              f"tile pairs {normal.num_tile_pairs}, mean opacity {row['mean_opacity']}")
+              f"tile pairs {normal.num_tile_pairs}, mean opacity {row['mean_opacity']} | "
+              f"load avg {load_before:.2f} -> {load_after:.2f}")
     return results
 
 
@@ -198,7 +207,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--profile", choices=sorted(PROFILES), default="full")
     ap.add_argument("--threads", type=int, default=None)
-    ap.add_argument("--runs", type=int, default=7)
+    ap.add_argument("--runs", type=int, default=9)
     ap.add_argument("--warmup", type=int, default=2)
     ap.add_argument("--overlap", type=float, default=80.0)
     ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "raster.json")

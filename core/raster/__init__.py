@@ -1,17 +1,40 @@
-"""Differentiable tile-based EWA splatting rasterizer of 3D Gaussians into G-buffers.
+"""Differentiable tile-based EWA splatting rasterizer of 3D Gaussians into G-buffers (CPU).
 
-Public API: :func:`rasterize` (activated, world-space tensors), :func:`rasterize_gaussians`
-(a :class:`core.gaussians.Gaussians`), :class:`RasterSettings`, :class:`RasterOutput`.
-The dense PyTorch twin used by the tests is :mod:`core.raster.reference`.
+Public API
+    :func:`rasterize` (activated, world-space tensors) and :func:`rasterize_gaussians` (a
+    :class:`core.gaussians.Gaussians`), :class:`RasterSettings`, :class:`RasterOutput`.
+    The dense PyTorch twin used by the tests is :mod:`core.raster.reference`.
+
+Files
+    ``splat.py``      the entry point, input validation and the ``torch.autograd.Function``
+    ``settings.py``   ``RasterSettings`` (frozen, one docstring per field) and ``RasterOutput``
+    ``_kernels.cpp``  projection, binning, forward and backward kernels (C++, SIMD, threads)
+    ``_native.py``    builds ``_kernels.cpp`` once per machine (cached) and loads it via ctypes;
+                      its docstring says why this is C++ rather than NVIDIA Warp
+    ``reference.py``  dense per-pixel PyTorch twin (float64-capable), for tests only
+
+Typical use::
+
+    from core.raster import RasterSettings, rasterize
+    out = rasterize(means, quats, scales, opacities, colors, normals, albedo, roughness, metallic,
+                    cam_to_world, fx, fy, cx, cy, width, height, background=bg)
+    loss = (out.color - target).abs().mean() + 0.1 * (out.opacity - mask).square().mean()
+    loss.backward()   # gradients for every Gaussian attribute, background and cam_to_world
+
+Performance notes: one call uses ``settings.threads`` threads (default: every core this process
+may use). PyTorch's own OpenMP threads spin-wait for a while after each parallel torch op and
+then compete with the kernels for the cores; on 2-core machines ``OMP_WAIT_POLICY=PASSIVE`` in
+the worker's environment avoids that (the benchmark runs with the default environment).
 """
 
-from core.raster.splat import quat_to_rotmat, rasterize, safe_normalize_quat
 from core.raster.settings import FEATURE_CHANNELS, RasterOutput, RasterSettings
+from core.raster.splat import quat_to_rotmat, rasterize, safe_normalize_quat
 
 
 def rasterize_gaussians(gaussians, cam_to_world, fx, fy, cx, cy, width, height, background=None,
                         settings=None):
-    """:func:`rasterize` for a :class:`core.gaussians.Gaussians` (its activated attributes)."""
+    """:func:`rasterize` for a :class:`core.gaussians.Gaussians` (its activated attributes);
+    gradients flow to the Gaussians' unconstrained parameters."""
     a = gaussians.activated()
     return rasterize(a["means"], a["quats"], a["scales"], a["opacities"], a["colors"], a["normals"],
                      a["albedo"], a["roughness"], a["metallic"], cam_to_world, fx, fy, cx, cy,

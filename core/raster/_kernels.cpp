@@ -8,7 +8,7 @@
 //   gdata   [N, NG]  per Gaussian: mx, my (pixels), conic a, b, c (inverse 2D covariance
 //                    [[a, b], [b, c]]), opacity o, then NF = 12 features
 //                    (color 3, depth 1, normal 3, albedo 3, roughness 1, metallic 1).
-//   aux     [N, 2]   written by bin_prepare: half height of the opacity-aware ellipse (pixels),
+//   aux     [N, 2]   written by bin: half height of the opacity-aware ellipse (pixels),
 //                    and a power threshold below which o*exp(power) < alpha_min for sure.
 //   out     [H, W, NO] NO = NF + 1: the 12 composited features then opacity O = 1 - T_final.
 //                    Channels 0..2 (color) also get T_final * background.
@@ -16,10 +16,15 @@
 //                    Gaussian that contributed to the pixel (0: none).
 //
 // SIMD: a tile row of 16 pixels is one vector (GCC vector extensions: 16 x float = one AVX-512
-// register; 16 x double = two). The same template code runs the float32 and float64 paths,
-// so the float64 path (tested against the dense PyTorch reference to 1e-9) checks the logic of
-// the float32 path. Loop order is Gaussian-outer, row-inner with per-row state in L1, so each
-// Gaussian is read once per tile and its backward gradient is reduced across lanes once per tile.
+// register; 16 x double = two; plain SSE/AVX2 code on other x86 CPUs). The same template code
+// runs the float32 and float64 paths, so the float64 path (tested against the dense PyTorch
+// reference to ~1e-12) checks the logic of the float32 path.
+// Forward: per tile, the Gaussians are gathered into a contiguous buffer and bucketed per row;
+// each row keeps its transmittance and 12 accumulators in registers and stops on its own.
+// Backward: Gaussian-outer (back to front), row-inner with per-row state in L1, so each
+// Gaussian's gradient is reduced across lanes once per tile (transpose-add of 16 vectors) into
+// the thread's own gradient buffer.
+// Threads: std::thread workers take tiles (largest lists first) from an atomic counter.
 
 #include <algorithm>
 #include <atomic>
@@ -72,6 +77,27 @@ inline bool any(VT<double>::I m) {
   return r != 0;
 }
 template <class I> inline bool all(I m) { return !any(~m); }
+
+// Sums of 16 vectors at once: lane l of the result is the sum of the lanes of v[l] (a
+// transpose-and-add tree: 4 levels of 2 shuffles + 1 add per pair, instead of 16 reductions).
+template <class V, class I> inline V level(V a, V b, int h) {
+  I lo, hi;
+  for (int j = 0; j < TS; ++j) {
+    const int base = j - j % (2 * h), w = j % (2 * h);
+    lo[j] = w < h ? base + w : TS + base + w - h;
+    hi[j] = w < h ? base + w + h : TS + base + w;
+  }
+  return __builtin_shuffle(a, b, lo) + __builtin_shuffle(a, b, hi);
+}
+template <class T> inline typename VT<T>::V hsum16(typename VT<T>::V *v) {
+  typedef typename VT<T>::V V;
+  typedef typename VT<T>::I I;
+  V t[8];
+  for (int k = 0; k < 8; ++k) t[k] = level<V, I>(v[2 * k], v[2 * k + 1], 1);
+  for (int k = 0; k < 4; ++k) t[k] = level<V, I>(t[2 * k], t[2 * k + 1], 2);
+  for (int k = 0; k < 2; ++k) t[k] = level<V, I>(t[2 * k], t[2 * k + 1], 4);
+  return level<V, I>(t[0], t[1], 8);
+}
 
 template <class V> inline auto hsum(V v) -> decltype(v[0] + v[1]) {
   decltype(v[0] + v[1]) s = 0;
@@ -133,27 +159,6 @@ template <class F> void run_parallel(int n_threads, int n_items, F fn) {
   for (auto &th : pool) th.join();
 }
 
-// Minimum over the rectangle [x0,x1]x[y0,y1] of q(p) = d^T [[a,b],[b,c]] d, d = p - m, is <= t?
-inline bool ellipse_hits_rect(double mx, double my, double a, double b, double c, double t,
-                              double x0, double x1, double y0, double y1) {
-  if (mx >= x0 && mx <= x1 && my >= y0 && my <= y1) return true;
-  auto q = [&](double dx, double dy) { return a * dx * dx + 2.0 * b * dx * dy + c * dy * dy; };
-  double best = INFINITY;
-  for (double X : {x0, x1}) {  // vertical edges: minimise over dy
-    double dx = X - mx;
-    double dy = c > 0 ? -b * dx / c : 0.0;
-    dy = std::min(std::max(dy, y0 - my), y1 - my);
-    best = std::min(best, q(dx, dy));
-  }
-  for (double Y : {y0, y1}) {  // horizontal edges: minimise over dx
-    double dy = Y - my;
-    double dx = a > 0 ? -b * dy / a : 0.0;
-    dx = std::min(std::max(dx, x0 - mx), x1 - mx);
-    best = std::min(best, q(dx, dy));
-  }
-  return best <= t;
-}
-
 struct Footprint {
   double t;             // ellipse level: q <= t  <=>  o * g >= alpha_min
   int tx0, tx1, ty0, ty1;
@@ -185,19 +190,33 @@ inline Footprint footprint(const T *g, uint8_t valid, double alpha_min, int W, i
   return f;
 }
 
+// Calls emit(tile) for every tile whose pixel-centre rectangle meets the ellipse q <= t.
+// Exact and cheap: per row of tiles, the ellipse cut by the row's band of pixel-centre y values
+// is convex, so its x-extent is an interval [mx + L, mx + R]; R(dy) is concave and L(dy) convex,
+// so their extremes over the band are at the clamped stationary points dy = -/+ b ex / c.
 template <class T, class Emit>
 inline int for_each_tile(const T *g, const Footprint &f, int W, int H, Emit emit) {
   int n = 0;
   if (!f.ok) return 0;
-  double mx = g[0], my = g[1], a = g[2], b = g[3], c = g[4];
+  const double mx = g[0], my = g[1], a = g[2], b = g[3], c = g[4], t = f.t;
+  const double det = a * c - b * b;
+  const double ex = std::sqrt(t * c / det), ey = std::sqrt(t * a / det);
+  const double dyR = -b * ex / c, dyL = b * ex / c;
+  const int tiles_x = (W + TS - 1) / TS;
   for (int ty = f.ty0; ty <= f.ty1; ++ty) {
-    double y0 = ty * TS + 0.5, y1 = std::min(ty * TS + TS - 1, H - 1) + 0.5;
-    for (int tx = f.tx0; tx <= f.tx1; ++tx) {
-      double x0 = tx * TS + 0.5, x1 = std::min(tx * TS + TS - 1, W - 1) + 0.5;
-      if (ellipse_hits_rect(mx, my, a, b, c, f.t, x0, x1, y0, y1)) {
-        emit(ty * ((W + TS - 1) / TS) + tx);
-        ++n;
-      }
+    const double Y0 = ty * TS + 0.5, Y1 = std::min(ty * TS + TS - 1, H - 1) + 0.5;
+    const double d0 = std::max(Y0 - my, -ey), d1 = std::min(Y1 - my, ey);
+    if (d0 > d1) continue;
+    const double yr = std::min(std::max(dyR, d0), d1), yl = std::min(std::max(dyL, d0), d1);
+    const double xr = mx + (-b * yr + std::sqrt(std::max(a * t - det * yr * yr, 0.0))) / a + 1e-3;
+    const double xl = mx + (-b * yl - std::sqrt(std::max(a * t - det * yl * yl, 0.0))) / a - 1e-3;
+    // pixel columns with centre in [xl, xr]
+    const double i0 = std::max(0.0, std::ceil(xl - 0.5)), i1 = std::min(W - 1.0, std::floor(xr - 0.5));
+    if (!(i0 <= i1)) continue;
+    const int tx0 = std::max((int)i0 / TS, f.tx0), tx1 = std::min((int)i1 / TS, f.tx1);
+    for (int tx = tx0; tx <= tx1; ++tx) {
+      emit(ty * tiles_x + tx);
+      ++n;
     }
   }
   return n;
@@ -278,13 +297,26 @@ inline void project_one(const Camera &c, const T *p, const T *q, const T *sc, Pr
 }
 
 // Fills gdata rows [N, NG] (mean2d, conic, clamped opacity, features) and valid [N].
+// Returns a bit mask: bit j set when input j (means, quats, scales, opac, colors, normals,
+// albedo, rough, metal) holds a NaN or Inf (then gdata is not meaningful).
 template <class T>
-void project(const T *means, const T *quats, const T *scales, const T *opac, const T *colors,
-             const T *normals, const T *albedo, const T *rough, const T *metal, const Camera &c,
-             int64_t N, int n_threads, T *gdata, uint8_t *valid) {
+int project(const T *means, const T *quats, const T *scales, const T *opac, const T *colors,
+            const T *normals, const T *albedo, const T *rough, const T *metal, const Camera &c,
+            int64_t N, int n_threads, T *gdata, uint8_t *valid) {
   const int64_t CH = 4096;
+  std::atomic<int> bad{0};
   run_parallel(n_threads, (int)((N + CH - 1) / CH), [&](int ci, int) {
-    for (int64_t i = ci * CH; i < std::min(N, (ci + 1) * CH); ++i) {
+    const int64_t i0 = ci * CH, i1 = std::min(N, (ci + 1) * CH);
+    const T *arr[9] = {means, quats, scales, opac, colors, normals, albedo, rough, metal};
+    const int width[9] = {3, 4, 3, 1, 3, 3, 3, 1, 1};
+    int mask = 0;
+    for (int j = 0; j < 9; ++j) {
+      int b = 0;  // x - x != 0 exactly when x is NaN or Inf
+      for (int64_t e = i0 * width[j]; e < i1 * width[j]; ++e) b |= (arr[j][e] - arr[j][e]) != T(0);
+      if (b) mask |= 1 << j;
+    }
+    if (mask) bad.fetch_or(mask);
+    for (int64_t i = i0; i < i1; ++i) {
       Proj P{};
       project_one(c, means + 3 * i, quats + 4 * i, scales + 3 * i, P);
       T *g = gdata + i * NG;
@@ -307,6 +339,7 @@ void project(const T *means, const T *quats, const T *scales, const T *opac, con
       g[17] = metal[i];
     }
   });
+  return bad.load();
 }
 
 // Chain rule from grad_g [N, NG] (mean2d, conic, depth feature) to means, quats, scales and the
@@ -314,8 +347,8 @@ void project(const T *means, const T *quats, const T *scales, const T *opac, con
 // gradients are plain copies of grad_g columns (done by the caller).
 template <class T>
 void project_backward(const T *means, const T *quats, const T *scales, const Camera &c,
-                      int64_t N, int n_threads, const T *grad_g, T *g_means, T *g_quats,
-                      T *g_scales, double *pose_grad) {
+                      const T *opac, int64_t N, int n_threads, const T *grad_g, T *g_means,
+                      T *g_quats, T *g_scales, T *g_opac, T *g_feat[5], double *pose_grad) {
   const int64_t CH = 4096;
   const int n_chunks = (int)((N + CH - 1) / CH);
   n_threads = std::max(1, std::min(n_threads, n_chunks));
@@ -328,6 +361,14 @@ void project_backward(const T *means, const T *quats, const T *scales, const Cam
       project_one(c, p, quats + 4 * i, sc, P);
       T *gm = g_means + 3 * i, *gq = g_quats + 4 * i, *gs = g_scales + 3 * i;
       const T *G = grad_g + i * NG;
+      g_opac[i] = (opac[i] >= T(0) && opac[i] <= T(1)) ? G[5] : T(0);
+      for (int j = 0; j < 3; ++j) {
+        g_feat[0][3 * i + j] = G[6 + j];   // colors
+        g_feat[1][3 * i + j] = G[10 + j];  // normals
+        g_feat[2][3 * i + j] = G[13 + j];  // albedo
+      }
+      g_feat[3][i] = G[16];  // roughness
+      g_feat[4][i] = G[17];  // metallic
       if (!P.valid) {
         for (int j = 0; j < 3; ++j) gm[j] = 0, gs[j] = 0;
         for (int j = 0; j < 4; ++j) gq[j] = 0;
@@ -406,13 +447,13 @@ void project_backward(const T *means, const T *quats, const T *scales, const Cam
 }
 
 // ---- binning --------------------------------------------------------------------------------
+// Visible Gaussians (vis[i] != 0) sorted front to back by camera depth (gdata col 9), ties by
+// index: a stable sort. float: 4-pass LSD radix sort on the (positive) float bit patterns.
 template <class T>
-void sort_by_depth(const T *gdata, const int32_t *counts, int64_t N, int32_t *order, int64_t &n_vis) {
-  // Visible Gaussians (count > 0) sorted front to back by camera depth (gdata col 9), ties by
-  // index: a stable sort. float: 4-pass LSD radix sort on the (positive) float bit patterns.
+void sort_by_depth(const T *gdata, const uint8_t *vis, int64_t N, int32_t *order, int64_t &n_vis) {
   n_vis = 0;
   for (int64_t i = 0; i < N; ++i)
-    if (counts[i] > 0) order[n_vis++] = (int32_t)i;
+    if (vis[i]) order[n_vis++] = (int32_t)i;
   if (sizeof(T) == 8) {
     std::stable_sort(order, order + n_vis, [&](int32_t u, int32_t v) {
       return gdata[(int64_t)u * NG + 9] < gdata[(int64_t)v * NG + 9];
@@ -443,15 +484,22 @@ void sort_by_depth(const T *gdata, const int32_t *counts, int64_t N, int32_t *or
   // 4 passes: the result is back in `order`.
 }
 
-// Footprints (aux), per-Gaussian tile counts, the visible Gaussians sorted by depth (order,
-// n_vis) and their pair offsets (goff, exclusive prefix sum in sorted order). Returns the total.
+// One pass over the Gaussians computes each footprint (aux) once and emits its (tile, Gaussian)
+// pairs; visible Gaussians are radix-sorted by depth; pairs are bucketed by tile and each tile's
+// depth ranks sorted: the global sort by (tile, depth) of 3DGS. Writes tile_offsets
+// [n_tiles + 1], tile_ids [total] (Gaussian ids, per tile front to back) and tile_order [n_tiles]
+// (tiles by decreasing list length, for load balancing) if total <= cap. Returns total.
 template <class T>
-int64_t bin_prepare(const T *gdata, const uint8_t *valid, int64_t N, int W, int H, double alpha_min,
-                    int n_threads, T *aux, int32_t *counts, int32_t *order, int64_t *goff,
-                    int64_t *n_vis_out) {
+int64_t bin(const T *gdata, const uint8_t *valid, int64_t N, int W, int H, double alpha_min,
+            int n_threads, T *aux, int64_t cap, int64_t *tile_offsets, int32_t *tile_ids,
+            int32_t *tile_order, int64_t *n_vis_out) {
+  const int tiles_x = (W + TS - 1) / TS, tiles_y = (H + TS - 1) / TS, n_tiles = tiles_x * tiles_y;
   const int64_t CH = 2048;
-  int n_chunks = (int)((N + CH - 1) / CH);
+  const int n_chunks = (int)((N + CH - 1) / CH);
+  std::vector<std::vector<uint64_t>> pairs(n_chunks);
+  std::vector<uint8_t> vis(N);
   run_parallel(n_threads, n_chunks, [&](int ci, int) {
+    auto &out = pairs[ci];
     for (int64_t i = ci * CH; i < std::min(N, (ci + 1) * CH); ++i) {
       const T *g = gdata + i * NG;
       Footprint f = footprint(g, valid[i], alpha_min, W, H);
@@ -463,52 +511,61 @@ int64_t bin_prepare(const T *gdata, const uint8_t *valid, int64_t N, int W, int 
         aux[2 * i] = 0;
         aux[2 * i + 1] = 0;
       }
-      counts[i] = for_each_tile(g, f, W, H, [](int) {});
+      const int n = for_each_tile(g, f, W, H, [&](int tile) { out.push_back(((uint64_t)tile << 32) | (uint64_t)i); });
+      vis[i] = n > 0;
     }
   });
+  std::vector<int64_t> coff(n_chunks + 1, 0);
+  for (int c = 0; c < n_chunks; ++c) coff[c + 1] = coff[c] + (int64_t)pairs[c].size();
+  const int64_t total = coff[n_chunks];
+  std::vector<int32_t> order(N);
   int64_t n_vis = 0;
-  sort_by_depth(gdata, counts, N, order, n_vis);
-  int64_t total = 0;
-  for (int64_t k = 0; k < n_vis; ++k) {
-    goff[k] = total;
-    total += counts[order[k]];
-  }
+  sort_by_depth(gdata, vis.data(), N, order.data(), n_vis);
   *n_vis_out = n_vis;
-  return total;
-}
-
-// Writes tile_offsets [n_tiles + 1], tile_ids [total] (Gaussian ids, per tile front to back),
-// tile_order [n_tiles] (tiles by decreasing list length, for load balancing).
-template <class T>
-void bin_fill(const T *gdata, const uint8_t *valid, int W, int H, double alpha_min, int n_threads,
-              const int32_t *order, const int64_t *goff, int64_t n_vis, int64_t total,
-              int64_t *tile_offsets, int32_t *tile_ids, int32_t *tile_order) {
-  std::vector<int32_t> pair_tile(total), pair_gauss(total);
-  const int64_t CH = 2048;
-  int n_chunks = (int)((n_vis + CH - 1) / CH);
-  run_parallel(n_threads, n_chunks, [&](int ci, int) {
-    for (int64_t k = ci * CH; k < std::min(n_vis, (ci + 1) * CH); ++k) {
-      const int32_t i = order[k];
-      const T *g = gdata + (int64_t)i * NG;
-      Footprint f = footprint(g, valid[i], alpha_min, W, H);
-      int64_t p = goff[k];
-      for_each_tile(g, f, W, H, [&](int tile) {
-        pair_tile[p] = tile;
-        pair_gauss[p] = i;
-        ++p;
-      });
+  if (total > cap) return total;
+  std::vector<int32_t> rank(N, 0);
+  for (int64_t k = 0; k < n_vis; ++k) rank[order[k]] = (int32_t)k;
+  // Bucket the pairs by tile (counting sort), then sort each tile's depth ranks (a Gaussian
+  // appears once per tile, so ranks are unique) in parallel over tiles, and map rank -> id.
+  for (int t = 0; t <= n_tiles; ++t) tile_offsets[t] = 0;
+  for (int c = 0; c < n_chunks; ++c)
+    for (uint64_t v : pairs[c]) tile_offsets[(v >> 32) + 1]++;
+  for (int t = 0; t < n_tiles; ++t) tile_offsets[t + 1] += tile_offsets[t];
+  {
+    std::vector<int64_t> cur(tile_offsets, tile_offsets + n_tiles);
+    for (int c = 0; c < n_chunks; ++c)
+      for (uint64_t v : pairs[c]) tile_ids[cur[v >> 32]++] = rank[v & 0xffffffffu];
+  }
+  int rank_bits = 1;
+  while ((int64_t(1) << rank_bits) < n_vis) ++rank_bits;
+  const int passes = (rank_bits + 7) / 8;
+  std::vector<std::vector<int32_t>> scratch(std::max(1, n_threads));
+  run_parallel(n_threads, n_tiles, [&](int t, int tid) {
+    int32_t *b = tile_ids + tile_offsets[t];
+    const int64_t m = tile_offsets[t + 1] - tile_offsets[t];
+    if (m < 64) {
+      std::sort(b, b + m);
+    } else {  // LSD radix sort on the rank bytes
+      auto &tmp = scratch[tid];
+      tmp.resize(m);
+      int32_t *src = b, *dst = tmp.data();
+      for (int pass = 0; pass < passes; ++pass) {
+        const int sh = 8 * pass;
+        int64_t cnt[257] = {0};
+        for (int64_t k = 0; k < m; ++k) cnt[((src[k] >> sh) & 255) + 1]++;
+        for (int d = 0; d < 256; ++d) cnt[d + 1] += cnt[d];
+        for (int64_t k = 0; k < m; ++k) dst[cnt[(src[k] >> sh) & 255]++] = src[k];
+        std::swap(src, dst);
+      }
+      if (src != b) std::memcpy(b, src, sizeof(int32_t) * m);
     }
+    for (int64_t k = 0; k < m; ++k) b[k] = order[b[k]];
   });
-  int tiles_x = (W + TS - 1) / TS, tiles_y = (H + TS - 1) / TS, n_tiles = tiles_x * tiles_y;
-  std::vector<int64_t> cnt(n_tiles + 1, 0);
-  for (int64_t p = 0; p < total; ++p) cnt[pair_tile[p] + 1]++;
-  for (int t = 0; t < n_tiles; ++t) cnt[t + 1] += cnt[t];
-  for (int t = 0; t <= n_tiles; ++t) tile_offsets[t] = cnt[t];
-  for (int64_t p = 0; p < total; ++p) tile_ids[cnt[pair_tile[p]]++] = pair_gauss[p];  // stable
   for (int t = 0; t < n_tiles; ++t) tile_order[t] = t;
   std::stable_sort(tile_order, tile_order + n_tiles, [&](int32_t u, int32_t v) {
     return tile_offsets[u + 1] - tile_offsets[u] > tile_offsets[v + 1] - tile_offsets[v];
   });
+  return total;
 }
 
 // ---- forward ------------------------------------------------------------------------------
@@ -516,15 +573,16 @@ struct Params {
   double alpha_min, alpha_max, t_min;
 };
 
-template <class T> struct alignas(64) RowF {
-  typename VT<T>::V T_, acc[NF];
-  typename VT<T>::I last, done, ncontrib, neval;
-};
+// One tile, row by row: the row's state (T, 12 accumulators, masks) lives in registers while
+// the row walks the tile's Gaussians front to back (gathered once per tile into a contiguous
+// local buffer); each row stops as soon as all 16 of its pixels are saturated.
+constexpr int NL = 8 + NF;  // floats per Gaussian in the tile-local buffer
 
 template <class T>
 void forward_tile(int tile, const T *gdata, const T *aux, const int64_t *tile_offsets,
                   const int32_t *tile_ids, int W, int H, const T *bg, const Params &P, T *out,
-                  T *tfinal, int32_t *last_out, int32_t *stats) {
+                  T *tfinal, int32_t *last_out, int32_t *stats, std::vector<T> &local,
+                  std::vector<int32_t> &rowlist) {
   typedef typename VT<T>::V V;
   typedef typename VT<T>::I I;
   const int tiles_x = (W + TS - 1) / TS;
@@ -537,75 +595,78 @@ void forward_tile(int tile, const T *gdata, const T *aux, const int64_t *tile_of
     X[l] = T(x0 + l) + T(0.5);
     inside[l] = (x0 + l < W) ? -1 : 0;
   }
-  RowF<T> rows[TS];
-  bool alive[TS];
-  int n_alive = nrows;
-  for (int r = 0; r < TS; ++r) {
-    rows[r].T_ = V{} + T(1);
-    for (int ch = 0; ch < NF; ++ch) rows[r].acc[ch] = V{};
-    rows[r].last = I{};
-    rows[r].done = ~inside;
-    rows[r].ncontrib = I{};
-    rows[r].neval = I{};
-    alive[r] = r < nrows;
-  }
-  const int64_t start = tile_offsets[tile], end = tile_offsets[tile + 1];
-  for (int64_t k = start; k < end && n_alive > 0; ++k) {
-    const int32_t gi = tile_ids[k];
+  const int64_t start = tile_offsets[tile], count = tile_offsets[tile + 1] - start;
+  local.resize((size_t)count * NL);
+  for (int64_t k = 0; k < count; ++k) {
+    if (k + 8 < count) {
+      const int64_t gp = tile_ids[start + k + 8];
+      __builtin_prefetch(gdata + gp * NG);
+      __builtin_prefetch(gdata + gp * NG + NG - 1);
+      __builtin_prefetch(aux + 2 * gp);
+    }
+    const int32_t gi = tile_ids[start + k];
     const T *g = gdata + (int64_t)gi * NG;
-    const T mx = g[0], my = g[1], a = g[2], b = g[3], c = g[4], o = g[5];
-    const T ey = aux[2 * gi], pthr = aux[2 * gi + 1];
-    T rlo = std::ceil(my - ey - T(y0) - T(0.5)), rhi = std::floor(my + ey - T(y0) - T(0.5));
+    T *d = local.data() + k * NL;
+    d[0] = g[0], d[1] = g[1], d[2] = g[2], d[3] = g[3], d[4] = g[4], d[5] = g[5];
+    d[6] = aux[2 * gi], d[7] = aux[2 * gi + 1];
+    for (int ch = 0; ch < NF; ++ch) d[8 + ch] = g[6 + ch];
+  }
+  // Per-row lists of the Gaussians whose footprint reaches the row (front to back), so the row
+  // loops below have no data-dependent skip branch.
+  rowlist.resize((size_t)count * TS);
+  int64_t row_n[TS] = {0};
+  for (int64_t k = 0; k < count; ++k) {
+    const T *d = local.data() + k * NL;
+    T rlo = std::ceil(d[1] - d[6] - T(y0) - T(0.5)), rhi = std::floor(d[1] + d[6] - T(y0) - T(0.5));
     rlo = std::max(rlo, T(0));
     rhi = std::min(rhi, T(nrows - 1));
     if (!(rlo <= rhi)) continue;
-    const int r0 = (int)rlo, r1 = (int)rhi;
-    const V dx = X - mx;
-    const V qa = T(-0.5) * a * dx * dx;
-    const V bdx = b * dx;
-    const I kk = I{} + (typename VT<T>::IS)(k - start + 1);
-    for (int r = r0; r <= r1; ++r) {
-      if (!alive[r]) continue;
-      RowF<T> &s = rows[r];
-      const T dy = T(y0 + r) + T(0.5) - my;
-      const V power = qa - T(0.5) * c * dy * dy - bdx * dy;
-      s.neval -= ~s.done;  // mask is -1 where active
-      if (!any((power > pthr) & ~s.done)) continue;
-      V alpha = o * vexp<T>(power);
-      alpha = alpha > amax ? V{} + amax : alpha;
-      I m = (alpha >= amin) & ~s.done;
-      if (!any(m)) continue;
-      const V test = s.T_ * (T(1) - alpha);
-      const I stop = m & (test < tmin);
-      m &= ~stop;
-      const V w = m ? alpha * s.T_ : V{};
-      for (int ch = 0; ch < NF; ++ch) s.acc[ch] += w * g[6 + ch];
-      s.T_ = m ? test : s.T_;
-      s.last = m ? kk : s.last;
-      s.ncontrib -= m;
-      if (any(stop)) {
-        s.done |= stop;
-        if (all(s.done)) {
-          alive[r] = false;
-          --n_alive;
-        }
-      }
-    }
+    for (int r = (int)rlo; r <= (int)rhi; ++r) rowlist[r * count + row_n[r]++] = (int32_t)k;
   }
   for (int r = 0; r < nrows; ++r) {
-    const RowF<T> &s = rows[r];
+    const T py = T(y0 + r) + T(0.5);
+    V Tr = V{} + T(1);
+    V acc[NF];
+    for (int ch = 0; ch < NF; ++ch) acc[ch] = V{};
+    I last = I{}, done = ~inside, ncontrib = I{}, neval = I{};
+    const int32_t *rl = rowlist.data() + r * count;
+    for (int64_t j = 0; j < row_n[r]; ++j) {
+      const int64_t k = rl[j];
+      const T *d = local.data() + k * NL;
+      const T dy = py - d[1];
+      const V dx = X - d[0];
+      const V power = T(-0.5) * (d[2] * dx * dx + d[4] * dy * dy) - d[3] * dx * dy;
+      neval -= ~done;
+      if (!any((power > d[7]) & ~done)) continue;
+      V alpha = d[5] * vexp<T>(power);
+      alpha = alpha > amax ? V{} + amax : alpha;
+      I m = (alpha >= amin) & ~done;
+      if (!any(m)) continue;
+      const V test = Tr * (T(1) - alpha);
+      const I stop = m & (test < tmin);
+      m &= ~stop;
+      const V w = m ? alpha * Tr : V{};
+      for (int ch = 0; ch < NF; ++ch) acc[ch] += w * d[8 + ch];
+      Tr = m ? test : Tr;
+      last = m ? I{} + (typename VT<T>::IS)(k + 1) : last;
+      ncontrib -= m;
+      if (any(stop)) {
+        done |= stop;
+        if (all(done)) break;
+      }
+    }
     const int y = y0 + r;
     for (int l = 0; l < TS && x0 + l < W; ++l) {
       const int64_t pix = (int64_t)y * W + x0 + l;
       T *o = out + pix * NO;
-      for (int ch = 0; ch < NF; ++ch) o[ch] = s.acc[ch][l];
-      for (int ch = 0; ch < 3; ++ch) o[ch] += s.T_[l] * bg[ch];
-      o[NF] = T(1) - s.T_[l];
-      tfinal[pix] = s.T_[l];
-      last_out[pix] = (int32_t)s.last[l];
+      for (int ch = 0; ch < NF; ++ch) o[ch] = acc[ch][l];
+      for (int ch = 0; ch < 3; ++ch) o[ch] += Tr[l] * bg[ch];
+      o[NF] = T(1) - Tr[l];
+      tfinal[pix] = Tr[l];
+      last_out[pix] = (int32_t)last[l];
       if (stats) {
-        stats[2 * pix] = (int32_t)s.neval[l];
-        stats[2 * pix + 1] = (int32_t)s.ncontrib[l];
+        stats[2 * pix] = (int32_t)neval[l];
+        stats[2 * pix + 1] = (int32_t)ncontrib[l];
       }
     }
   }
@@ -613,7 +674,9 @@ void forward_tile(int tile, const T *gdata, const T *aux, const int64_t *tile_of
 
 // ---- backward -----------------------------------------------------------------------------
 template <class T> struct alignas(64) RowB {
-  typename VT<T>::V T_, S[NO], g[NO], bgterm;
+  // SG = sum_ch S_ch * g_ch, where S_ch is what lies behind the current Gaussian (composited
+  // from just after it): S' = a f + (1 - a) S is linear, so one running value replaces 13.
+  typename VT<T>::V T_, SG, g[NO], bgterm;
   typename VT<T>::I last;
   int64_t maxlast;
 };
@@ -635,11 +698,9 @@ void backward_tile(int tile, const T *gdata, const T *aux, const int64_t *tile_o
   for (int r = 0; r < nrows; ++r) {
     RowB<T> &s = rows[r];
     s.T_ = V{};
+    s.SG = V{};
     s.last = I{};
-    for (int ch = 0; ch < NO; ++ch) {
-      s.S[ch] = V{};
-      s.g[ch] = V{};
-    }
+    for (int ch = 0; ch < NO; ++ch) s.g[ch] = V{};
     s.maxlast = 0;
     const int y = y0 + r;
     for (int l = 0; l < TS && x0 + l < W; ++l) {
@@ -653,7 +714,16 @@ void backward_tile(int tile, const T *gdata, const T *aux, const int64_t *tile_o
     kmax = std::max(kmax, s.maxlast);
   }
   const int64_t start = tile_offsets[tile];
+  constexpr int64_t PF = 6;  // software prefetch distance (Gaussians are visited in random order)
   for (int64_t kl = kmax - 1; kl >= 0; --kl) {
+    if (kl >= PF) {
+      const int64_t gp = tile_ids[start + kl - PF];
+      __builtin_prefetch(gdata + gp * NG);
+      __builtin_prefetch(gdata + gp * NG + NG - 1);
+      __builtin_prefetch(aux + 2 * gp);
+      __builtin_prefetch(grad_g + gp * NG, 1);
+      __builtin_prefetch(grad_g + gp * NG + NG - 1, 1);
+    }
     const int32_t gi = tile_ids[start + kl];
     const T *g = gdata + (int64_t)gi * NG;
     const T mx = g[0], my = g[1], a = g[2], b = g[3], c = g[4], o = g[5];
@@ -667,6 +737,8 @@ void backward_tile(int tile, const T *gdata, const T *aux, const int64_t *tile_o
     const V qa = T(-0.5) * a * dx * dx;
     const V bdx = b * dx;
     const I kk = I{} + (typename VT<T>::IS)kl;
+    T f[NF];
+    for (int ch = 0; ch < NF; ++ch) f[ch] = g[6 + ch];
     V gf[NF];
     for (int ch = 0; ch < NF; ++ch) gf[ch] = V{};
     V go = V{}, gmx = V{}, gmy = V{}, ga = V{}, gb = V{}, gc = V{};
@@ -680,43 +752,41 @@ void backward_tile(int tile, const T *gdata, const T *aux, const int64_t *tile_o
       if (!any((power > pthr) & act)) continue;
       const V G = vexp<T>(power);
       const V oG = o * G;
-      const V alpha = oG > amax ? V{} + amax : oG;
+      V alpha = oG > amax ? V{} + amax : oG;
       const I m = act & (alpha >= amin);
       if (!any(m)) continue;
       touched = true;
+      alpha = m ? alpha : V{};  // masked lanes: alpha = 0 leaves T and SG unchanged
       const V one_m = T(1) - alpha;
-      const V Ti = m ? s.T_ / one_m : s.T_;
+      const V inv = T(1) / one_m;
+      const V Ti = s.T_ * inv;
       s.T_ = Ti;
-      const V w = m ? alpha * Ti : V{};
-      V dA = V{};
+      const V w = alpha * Ti;
+      V FG = s.g[NF];  // opacity channel: f = 1
       for (int ch = 0; ch < NF; ++ch) {
-        const T f = g[6 + ch];
-        dA += (f - s.S[ch]) * s.g[ch];
+        FG += f[ch] * s.g[ch];
         gf[ch] += w * s.g[ch];
-        s.S[ch] = m ? alpha * f + one_m * s.S[ch] : s.S[ch];
       }
-      dA += (T(1) - s.S[NF]) * s.g[NF];
-      s.S[NF] = m ? alpha + one_m * s.S[NF] : s.S[NF];
-      dA = dA * Ti - s.bgterm / one_m;
+      V dA = (FG - s.SG) * Ti - s.bgterm * inv;
+      s.SG = alpha * FG + one_m * s.SG;
       dA = (m & (oG <= amax)) ? dA : V{};
       go += dA * G;
       const V dP = dA * oG;
-      const T dyv = dy;
-      gmx += dP * (a * dx + b * dyv);
-      gmy += dP * (bdx + c * dyv);
+      gmx += dP * (a * dx + b * dy);
+      gmy += dP * (bdx + c * dy);
       ga += dP * (T(-0.5) * dx * dx);
-      gb += dP * (-dx * dyv);
-      gc += dP * (T(-0.5) * dyv * dyv);
+      gb += dP * (-dx * dy);
+      gc += dP * (T(-0.5) * dy * dy);
     }
     if (touched) {
       T *gg = grad_g + (int64_t)gi * NG;
-      gg[0] += hsum(gmx);
-      gg[1] += hsum(gmy);
-      gg[2] += hsum(ga);
-      gg[3] += hsum(gb);
-      gg[4] += hsum(gc);
-      gg[5] += hsum(go);
-      for (int ch = 0; ch < NF; ++ch) gg[6 + ch] += hsum(gf[ch]);
+      V acc[TS] = {gmx, gmy, ga, gb, gc, go};
+      for (int ch = 0; ch < TS - 6; ++ch) acc[6 + ch] = gf[ch];
+      V red = hsum16<T>(acc), cur;
+      std::memcpy(&cur, gg, sizeof(V));
+      cur += red;
+      std::memcpy(gg, &cur, sizeof(V));
+      for (int ch = TS - 6; ch < NF; ++ch) gg[6 + ch] += hsum(gf[ch]);
     }
   }
 }
@@ -727,7 +797,7 @@ void backward_tile(int tile, const T *gdata, const T *aux, const int64_t *tile_o
 #define BR_EXPORT extern "C" __attribute__((visibility("default")))
 
 #define BR_DEFINE(T, SUF)                                                                      \
-  BR_EXPORT void br_project_##SUF(const T *means, const T *quats, const T *scales,              \
+  BR_EXPORT int br_project_##SUF(const T *means, const T *quats, const T *scales,              \
                                   const T *opac, const T *colors, const T *normals,            \
                                   const T *albedo, const T *rough, const T *metal,             \
                                   const double *cam /* w2c[16], fx, fy, cx, cy, near, guard,   \
@@ -736,32 +806,27 @@ void backward_tile(int tile, const T *gdata, const T *aux, const int64_t *tile_o
                                   uint8_t *valid) {                                            \
     Camera c = make_camera(cam, cam[16], cam[17], cam[18], cam[19], W, H, cam[20], cam[21],    \
                            cam[22], cam[23]);                                                  \
-    project<T>(means, quats, scales, opac, colors, normals, albedo, rough, metal, c, N,        \
-               n_threads, gdata, valid);                                                       \
+    return project<T>(means, quats, scales, opac, colors, normals, albedo, rough, metal, c, N, \
+                      n_threads, gdata, valid);                                                \
   }                                                                                            \
   BR_EXPORT void br_project_backward_##SUF(const T *means, const T *quats, const T *scales,     \
-                                           const double *cam, int W, int H, int64_t N,         \
-                                           int n_threads, const T *grad_g, T *g_means,         \
-                                           T *g_quats, T *g_scales, double *pose_grad) {       \
+                                           const T *opac, const double *cam, int W, int H,     \
+                                           int64_t N, int n_threads, const T *grad_g,          \
+                                           T *g_means, T *g_quats, T *g_scales, T *g_opac,     \
+                                           T *g_colors, T *g_normals, T *g_albedo, T *g_rough, \
+                                           T *g_metal, double *pose_grad) {                    \
+    T *g_feat[5] = {g_colors, g_normals, g_albedo, g_rough, g_metal};                         \
     Camera c = make_camera(cam, cam[16], cam[17], cam[18], cam[19], W, H, cam[20], cam[21],    \
                            cam[22], cam[23]);                                                  \
-    project_backward<T>(means, quats, scales, c, N, n_threads, grad_g, g_means, g_quats,       \
-                        g_scales, pose_grad);                                                  \
+    project_backward<T>(means, quats, scales, c, opac, N, n_threads, grad_g, g_means, g_quats, \
+                        g_scales, g_opac, g_feat, pose_grad);                                  \
   }                                                                                            \
-  BR_EXPORT int64_t br_bin_prepare_##SUF(const T *gdata, const uint8_t *valid, int64_t N,       \
-                                         int W, int H, double alpha_min, int n_threads,        \
-                                         T *aux, int32_t *counts, int32_t *order,              \
-                                         int64_t *goff, int64_t *n_vis) {                      \
-    return bin_prepare<T>(gdata, valid, N, W, H, alpha_min, n_threads, aux, counts, order,     \
-                          goff, n_vis);                                                        \
-  }                                                                                            \
-  BR_EXPORT void br_bin_fill_##SUF(const T *gdata, const uint8_t *valid, int W, int H,          \
-                                   double alpha_min, int n_threads, const int32_t *order,      \
-                                   const int64_t *goff, int64_t n_vis, int64_t total,          \
-                                   int64_t *tile_offsets, int32_t *tile_ids,                   \
-                                   int32_t *tile_order) {                                      \
-    bin_fill<T>(gdata, valid, W, H, alpha_min, n_threads, order, goff, n_vis, total,           \
-                tile_offsets, tile_ids, tile_order);                                           \
+  BR_EXPORT int64_t br_bin_##SUF(const T *gdata, const uint8_t *valid, int64_t N, int W, int H,  \
+                                 double alpha_min, int n_threads, T *aux, int64_t cap,         \
+                                 int64_t *tile_offsets, int32_t *tile_ids, int32_t *tile_order, \
+                                 int64_t *n_vis) {                                             \
+    return bin<T>(gdata, valid, N, W, H, alpha_min, n_threads, aux, cap, tile_offsets,         \
+                  tile_ids, tile_order, n_vis);                                                \
   }                                                                                            \
   BR_EXPORT void br_forward_##SUF(const T *gdata, const T *aux, const int64_t *tile_offsets,    \
                                   const int32_t *tile_ids, const int32_t *tile_order,          \
@@ -769,9 +834,12 @@ void backward_tile(int tile, const T *gdata, const T *aux, const int64_t *tile_o
                                   double alpha_max, double t_min, int n_threads, T *out,       \
                                   T *tfinal, int32_t *last, int32_t *stats) {                  \
     Params P{alpha_min, alpha_max, t_min};                                                     \
-    run_parallel(n_threads, n_tiles, [&](int i, int) {                                         \
+    n_threads = std::max(1, std::min(n_threads, n_tiles));                                     \
+    std::vector<std::vector<T>> local(n_threads);                                              \
+    std::vector<std::vector<int32_t>> rowlist(n_threads);                                      \
+    run_parallel(n_threads, n_tiles, [&](int i, int tid) {                                     \
       forward_tile<T>(tile_order[i], gdata, aux, tile_offsets, tile_ids, W, H, bg, P, out,      \
-                      tfinal, last, stats);                                                    \
+                      tfinal, last, stats, local[tid], rowlist[tid]);                          \
     });                                                                                        \
   }                                                                                            \
   BR_EXPORT void br_backward_##SUF(const T *gdata, const T *aux, const int64_t *tile_offsets,   \
@@ -781,7 +849,12 @@ void backward_tile(int tile, const T *gdata, const T *aux, const int64_t *tile_o
                                    const T *tfinal, const int32_t *last, const T *grad_out,    \
                                    int64_t N, T *grad_g /* [n_threads, N, NG], zeroed */) {    \
     Params P{alpha_min, alpha_max, t_min};                                                     \
+    /* grad_g holds n_threads buffers of N * NG (uninitialised); each thread zeroes its own */ \
+    const int n_alloc = n_threads;                                                             \
     n_threads = std::max(1, std::min(n_threads, n_tiles));                                     \
+    run_parallel(n_alloc, n_alloc, [&](int t, int) {                                           \
+      std::memset(grad_g + (int64_t)t * N * NG, 0, sizeof(T) * N * NG);                        \
+    });                                                                                        \
     run_parallel(n_threads, n_tiles, [&](int i, int tid) {                                     \
       backward_tile<T>(tile_order[i], gdata, aux, tile_offsets, tile_ids, W, H, bg, P, tfinal,  \
                        last, grad_out, grad_g + (int64_t)tid * N * NG);                        \
@@ -799,4 +872,4 @@ void backward_tile(int tile, const T *gdata, const T *aux, const int64_t *tile_o
 BR_DEFINE(float, f32)
 BR_DEFINE(double, f64)
 
-BR_EXPORT int br_abi_version() { return 2; }
+BR_EXPORT int br_abi_version() { return 6; }

@@ -14,8 +14,9 @@ Why C++ and not NVIDIA Warp
 Build
     ``g++ -O3 -march=native -std=gnu++17 -shared -fPIC -pthread`` (about 8 s, once). The shared
     object is cached under ``$BRDFUSION_CACHE_DIR/raster`` (default ``~/.cache/brdfusion/raster``)
-    keyed by a hash of the source, the flags, the compiler version and the CPU model, so a source
-    edit or a different machine rebuilds. The build writes to a temporary file and renames it,
+    keyed by a hash of the source, the flags, the compiler version and the CPU model and flags, so
+    a source edit or a different machine rebuilds (falls back to the temp directory if the cache
+    directory is not writable). The runtime image therefore needs ``g++`` (gcc >= 9). The build writes to a temporary file and renames it,
     so concurrent first uses (pytest-xdist, several workers) are safe. ``BRDFUSION_CXX``
     overrides the compiler. No torch headers are used, which keeps the build short.
 
@@ -30,13 +31,14 @@ import os
 import subprocess
 import tempfile
 import threading
+import time
 from pathlib import Path
 
 from core.errors import DependencyError
 
 _SRC = Path(__file__).with_name("_kernels.cpp")
 _FLAGS = ["-O3", "-march=native", "-std=gnu++17", "-shared", "-fPIC", "-pthread", "-Wno-psabi"]
-_ABI_VERSION = 2
+_ABI_VERSION = 6
 
 _lock = threading.Lock()
 _lib: ctypes.CDLL | None = None
@@ -49,14 +51,19 @@ def _cache_dir() -> Path:
 
 
 def _cpu_model() -> str:
+    """CPU model name and feature flags (``-march=native`` code is only valid on the same kind)."""
+    found: dict[str, str] = {}
     try:
         with open("/proc/cpuinfo", encoding="utf-8") as fh:
             for line in fh:
-                if line.startswith("model name") or line.startswith("flags"):
-                    return line.strip()
+                key = line.split(":", 1)[0].strip()
+                if key in ("model name", "flags") and key not in found:
+                    found[key] = line.strip()
+                if len(found) == 2:
+                    break
     except OSError:
         pass
-    return "unknown"
+    return " | ".join(found.values()) or "unknown"
 
 
 def _build() -> Path:
@@ -68,7 +75,13 @@ def _build() -> Path:
     src = _SRC.read_bytes()
     key = hashlib.sha256(src + repr((_FLAGS, version, _cpu_model())).encode()).hexdigest()[:16]
     out_dir = _cache_dir()
-    out_dir.mkdir(parents=True, exist_ok=True)
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        if not os.access(out_dir, os.W_OK):
+            raise PermissionError(str(out_dir))
+    except OSError:  # read-only home (containers): fall back to the temp directory
+        out_dir = Path(tempfile.gettempdir()) / "brdfusion-raster"
+        out_dir.mkdir(parents=True, exist_ok=True)
     target = out_dir / f"brdfusion_raster_{key}.so"
     if target.exists():
         return target
@@ -82,6 +95,13 @@ def _build() -> Path:
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
+    week_ago = time.time() - 7 * 86400
+    for stale in out_dir.glob("brdfusion_raster_*.so"):  # builds of older sources, unused a week
+        try:
+            if stale != target and stale.stat().st_mtime < week_ago:
+                stale.unlink()  # safe on Linux even if another process has it loaded
+        except OSError:
+            pass
     return target
 
 
@@ -89,10 +109,9 @@ def _declare(lib: ctypes.CDLL) -> None:
     p, i32, i64, f64 = ctypes.c_void_p, ctypes.c_int, ctypes.c_int64, ctypes.c_double
     for suf in ("f32", "f64"):
         sig = {
-            "project": ([p] * 10 + [i32, i32, i64, i32, p, p], None),
-            "project_backward": ([p] * 4 + [i32, i32, i64, i32] + [p] * 5, None),
-            "bin_prepare": ([p, p, i64, i32, i32, f64, i32, p, p, p, p, p], ctypes.c_int64),
-            "bin_fill": ([p, p, i32, i32, f64, i32, p, p, i64, i64, p, p, p], None),
+            "project": ([p] * 10 + [i32, i32, i64, i32, p, p], ctypes.c_int),
+            "project_backward": ([p] * 5 + [i32, i32, i64, i32] + [p] * 11, None),
+            "bin": ([p, p, i64, i32, i32, f64, i32, p, i64, p, p, p, p], ctypes.c_int64),
             "forward": ([p, p, p, p, p, i32, i32, i32, p, f64, f64, f64, i32, p, p, p, p], None),
             "backward": ([p, p, p, p, p, i32, i32, i32, p, f64, f64, f64, i32, p, p, p, i64, p], None),
         }

@@ -1,27 +1,32 @@
-"""Differentiable tile-based EWA splatting of 3D Gaussians into G-buffers (CPU).
+"""Differentiable tile-based EWA splatting of 3D Gaussians into G-buffers (CPU, C++ kernels).
 
-Pipeline of :func:`rasterize`:
+Pipeline of :func:`rasterize` (all of it in ``_kernels.cpp``, called through ctypes with the
+GIL released, on ``settings.threads`` threads):
 
-1. **Projection** (:func:`project_gaussians`, vectorised torch, differentiable by autograd):
-   world means -> OpenCV camera (``world_to_cam`` = inverse of the rigid ``cam_to_world``),
-   pinhole projection to pixels (pixel centres at +0.5, i.e. ``u = fx x / z + cx``), 3D covariance
-   ``R(q) diag(s)^2 R(q)^T``, EWA 2D covariance ``J W Sigma W^T J^T`` with the Jacobian's
-   ``x/z, y/z`` clamped to a ``guard_band`` (1.3x) field of view, ``+low_pass`` on the diagonal,
-   conic = inverse 2D covariance (formed in float64 so extreme covariances cannot overflow).
-   Gaussians with camera depth ``z <= near`` are culled.
-2. **Binning** (C++): opacity-aware footprint: the ellipse where ``o * g >= alpha_min``
-   (``q <= 2 ln(o / alpha_min)``); a Gaussian is listed in a 16x16 tile only if that ellipse
-   overlaps the rectangle spanned by the tile's pixel centres (exact ellipse-rectangle test).
-   Gaussians are sorted by depth once (stable), then bucketed per tile with a stable counting
-   sort: the same order as a global sort by the key (tile, depth).
-3. **Compositing** (C++, :class:`_RasterizeFn`): per pixel, front to back,
-   ``alpha = min(alpha_max, o g)``, skipped when ``< alpha_min``, stop before the Gaussian that
-   would bring the transmittance below ``transmittance_min``; 12 feature channels + opacity.
-   The backward walks each tile's list back to front, recovering ``T_i`` by division.
+1. **Projection** (per Gaussian, computed in float64 whatever the input dtype): world means ->
+   OpenCV camera with ``world_to_cam = inv(cam_to_world)``; pinhole projection to pixels
+   ``u = fx x/z + cx`` (pixel centres at +0.5); 3D covariance ``R(q) diag(s)^2 R(q)^T`` with
+   ``q`` safely normalised (zero -> identity) and ``s`` clamped to ``[0, max_scale]``; EWA 2D
+   covariance ``J W Sigma W^T J^T`` with the Jacobian's ``x/z, y/z`` clamped to a
+   ``guard_band`` (1.3x) field of view; ``+low_pass`` on the diagonal; conic = its inverse.
+   Gaussians with camera depth ``z <= near`` are culled. Also checks every input is finite.
+2. **Binning**: opacity-aware footprint, the ellipse where ``o * g >= alpha_min``
+   (``q <= 2 ln(o / alpha_min)``, no fixed 3 sigma); a Gaussian is listed in a 16x16 tile only
+   if that ellipse meets the rectangle spanned by the tile's pixel centres (exact, per row of
+   tiles). Visible Gaussians are radix-sorted by depth, then the (tile, depth-rank) keys of all
+   pairs are radix-sorted: the global sort by (tile, depth) of 3DGS.
+3. **Compositing**: per pixel, front to back, ``alpha = min(alpha_max, o g)``, skipped when
+   ``< alpha_min``; a pixel stops before the Gaussian that would bring its transmittance below
+   ``transmittance_min``; 12 feature channels + opacity (``O = 1 - T_final``), background
+   added to color. 16 pixels of a tile row are one SIMD vector.
+4. **Backward**: each tile's list back to front, recovering ``T_i = T_{i+1} / (1 - alpha_i)``;
+   per-thread gradient buffers reduced at the end; then the chain rule through the projection
+   (hand-written, checked against the dense PyTorch twin and finite differences).
 
-Gradients reach every input, including ``cam_to_world`` and the intrinsics' tensors if they
-require grad (through the torch projection), so scene-graph node poses composed in torch
-before the call get gradients too.
+Gradients reach means, quats, scales, opacities, colors, normals, albedo, roughness,
+metallic, background and ``cam_to_world`` (through ``torch.linalg.inv``), so scene-graph node
+poses composed in torch before the call (transforming means/quats/normals) get gradients by
+ordinary autograd. The intrinsics are plain numbers (no gradient).
 """
 
 from __future__ import annotations
@@ -32,13 +37,14 @@ from typing import Any
 
 import torch
 
-from core.errors import ConfigError, ShapeError
+from core.errors import ConfigError, NumericalError, ShapeError
 from core.numerics import EPS_NORM_SQ, require_finite
 from core.raster import _native
 from core.raster.settings import NUM_FEATURES, NUM_OUTPUTS, RasterOutput, RasterSettings
 
 NG = 6 + NUM_FEATURES  # floats per Gaussian handed to the kernels
 TILE = 16
+_INPUT_NAMES = ("means", "quats", "scales", "opacities", "colors", "normals", "albedo", "roughness", "metallic")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -84,27 +90,32 @@ def _suffix(dtype: torch.dtype) -> str:
 class _Binning:
     """Sorted per-tile Gaussian lists (and the per-Gaussian footprint data) for one frame."""
 
+    #: Initial capacity of the pair list per Gaussian; grows (with a second kernel call) when a
+    #: frame has more pairs, and remembers the largest ratio seen.
+    pairs_per_gaussian = 8.0
+
     def __init__(self, lib, suf: str, gdata: torch.Tensor, valid: torch.Tensor, width: int,
                  height: int, settings: RasterSettings, threads: int):
         n = gdata.shape[0]
         self.n_tiles = ((width + TILE - 1) // TILE) * ((height + TILE - 1) // TILE)
         self.aux = torch.empty(n, 2, dtype=gdata.dtype)
-        counts = torch.empty(n, dtype=torch.int32)
-        order = torch.empty(n, dtype=torch.int32)
-        goff = torch.empty(n, dtype=torch.int64)
-        n_vis = ctypes.c_int64(0)
-        total = getattr(lib, f"br_bin_prepare_{suf}")(
-            _ptr(gdata), _ptr(valid), n, width, height, settings.alpha_min, threads,
-            _ptr(self.aux), _ptr(counts), _ptr(order), _ptr(goff), ctypes.byref(n_vis))
-        self.num_visible = int(n_vis.value)
-        self.total = int(total)
         self.tile_offsets = torch.empty(self.n_tiles + 1, dtype=torch.int64)
-        self.tile_ids = torch.empty(self.total, dtype=torch.int32)
         self.tile_order = torch.empty(self.n_tiles, dtype=torch.int32)
-        getattr(lib, f"br_bin_fill_{suf}")(
-            _ptr(gdata), _ptr(valid), width, height, settings.alpha_min, threads, _ptr(order),
-            _ptr(goff), self.num_visible, self.total, _ptr(self.tile_offsets), _ptr(self.tile_ids),
-            _ptr(self.tile_order))
+        n_vis = ctypes.c_int64(0)
+        cap = int(_Binning.pairs_per_gaussian * n) + 1024
+        while True:
+            tile_ids = torch.empty(cap, dtype=torch.int32)
+            total = getattr(lib, f"br_bin_{suf}")(
+                _ptr(gdata), _ptr(valid), n, width, height, settings.alpha_min, threads,
+                _ptr(self.aux), cap, _ptr(self.tile_offsets), _ptr(tile_ids), _ptr(self.tile_order),
+                ctypes.byref(n_vis))
+            if total <= cap:
+                break
+            cap = int(total * 1.25) + 1024
+            _Binning.pairs_per_gaussian = max(_Binning.pairs_per_gaussian, 1.25 * total / max(n, 1))
+        self.tile_ids = tile_ids[:total]
+        self.total = int(total)
+        self.num_visible = int(n_vis.value)
 
 
 class _SplatFn(torch.autograd.Function):
@@ -130,8 +141,11 @@ class _SplatFn(torch.autograd.Function):
         ins = [t.detach().contiguous() for t in (means, quats, scales, opac, colors, normals, albedo, rough, metal)]
         gdata = torch.empty(n, NG, dtype=dtype)
         valid = torch.empty(n, dtype=torch.uint8)
-        getattr(lib, f"br_project_{suf}")(*[_ptr(t) for t in ins], _ptr(cam), width, height, n, threads,
-                                          _ptr(gdata), _ptr(valid))
+        bad = getattr(lib, f"br_project_{suf}")(*[_ptr(t) for t in ins], _ptr(cam), width, height, n,
+                                                threads, _ptr(gdata), _ptr(valid))
+        if bad:
+            name = _INPUT_NAMES[(bad & -bad).bit_length() - 1]
+            raise NumericalError(f"{name}: non-finite value(s) (NaN or Inf)")
         binning = _Binning(lib, suf, gdata, valid, width, height, settings, threads)
         out = torch.empty(height, width, NUM_OUTPUTS, dtype=dtype)
         tfinal = torch.empty(height, width, dtype=dtype)
@@ -168,7 +182,7 @@ class _SplatFn(torch.autograd.Function):
         n = gdata.shape[0]
         threads = max(1, min(settings.num_threads, binning.n_tiles))
         grad_out = grad_out.to(dtype).contiguous()
-        buf = torch.zeros(threads, n, NG, dtype=dtype)
+        buf = torch.empty(threads, n, NG, dtype=dtype)  # zeroed by the kernel
         getattr(lib, f"br_backward_{suf}")(
             _ptr(gdata), _ptr(binning.aux), _ptr(binning.tile_offsets), _ptr(binning.tile_ids),
             _ptr(binning.tile_order), binning.n_tiles, width, height, _ptr(bg),
@@ -178,11 +192,13 @@ class _SplatFn(torch.autograd.Function):
         g_means = torch.empty(n, 3, dtype=dtype)
         g_quats = torch.empty(n, 4, dtype=dtype)
         g_scales = torch.empty(n, 3, dtype=dtype)
+        g_opac = torch.empty(n, dtype=dtype)
+        g_feat = [torch.empty(n, 3, dtype=dtype) for _ in range(3)] + [torch.empty(n, dtype=dtype) for _ in range(2)]
         pose = torch.zeros(12, dtype=torch.float64)
         getattr(lib, f"br_project_backward_{suf}")(
-            _ptr(means), _ptr(quats), _ptr(scales), _ptr(ctx.cam), width, height, n,
-            settings.num_threads, _ptr(gg), _ptr(g_means), _ptr(g_quats), _ptr(g_scales), _ptr(pose))
-        g_opac = torch.where((opac >= 0) & (opac <= 1), gg[:, 5], torch.zeros_like(gg[:, 5]))
+            _ptr(means), _ptr(quats), _ptr(scales), _ptr(opac), _ptr(ctx.cam), width, height, n,
+            settings.num_threads, _ptr(gg), _ptr(g_means), _ptr(g_quats), _ptr(g_scales), _ptr(g_opac),
+            *[_ptr(t) for t in g_feat], _ptr(pose))
         g_w2c = None
         if ctx.needs_input_grad[9]:
             g_w2c = torch.zeros(4, 4, dtype=torch.float64)
@@ -191,15 +207,15 @@ class _SplatFn(torch.autograd.Function):
         grad_bg = None
         if ctx.needs_input_grad[10]:
             grad_bg = (tfinal[..., None] * grad_out[..., :3]).sum(dim=(0, 1))
-        return (g_means, g_quats, g_scales, g_opac, gg[:, 6:9], gg[:, 10:13], gg[:, 13:16], gg[:, 16],
-                gg[:, 17], g_w2c, grad_bg, None, None, None, None, None)
+        return (g_means, g_quats, g_scales, g_opac, *g_feat, g_w2c, grad_bg, None, None, None, None, None)
 
 
 # ---------------------------------------------------------------------------------------------
 # validation and the public entry point
 # ---------------------------------------------------------------------------------------------
 
-def _check_tensor(x: Any, name: str, shape: tuple, dtype: torch.dtype | None) -> torch.Tensor:
+def _check_tensor(x: Any, name: str, shape: tuple, dtype: torch.dtype | None,
+                  check_finite: bool = True) -> torch.Tensor:
     if not isinstance(x, torch.Tensor):
         raise ShapeError(f"{name}: expected a torch.Tensor, got {type(x).__name__}")
     if not x.is_floating_point():
@@ -211,7 +227,8 @@ def _check_tensor(x: Any, name: str, shape: tuple, dtype: torch.dtype | None) ->
     if x.dim() != len(shape) or any(s is not None and x.shape[i] != s for i, s in enumerate(shape)):
         want = "[" + ", ".join("*" if s is None else str(s) for s in shape) + "]"
         raise ShapeError(f"{name}: expected shape {want}, got {list(x.shape)}")
-    require_finite(x, name)
+    if check_finite:  # the Gaussian attributes are checked by the projection kernel instead
+        require_finite(x, name)
     return x
 
 
@@ -226,8 +243,6 @@ def _check_scalar(v: Any, name: str, positive: bool = False):
         except (TypeError, ValueError) as exc:
             raise ConfigError(f"{name}: expected a number, got {v!r}") from exc
     if not math.isfinite(val):
-        from core.errors import NumericalError
-
         raise NumericalError(f"{name}: non-finite value {val}")
     if positive and val <= 0:
         raise ConfigError(f"{name}: must be > 0, got {val}")
@@ -261,8 +276,9 @@ def rasterize(
     means [N, 3] world metres; quats [N, 4] wxyz (need not be normalised; zero -> identity);
     scales [N, 3] metres (>= 0); opacities [N] or [N, 1] in [0, 1] (clamped); colors [N, 3];
     normals [N, 3] world, unit; albedo [N, 3]; roughness [N] or [N, 1]; metallic [N] or [N, 1].
-    cam_to_world: [4, 4] rigid (tensor, may require grad). fx, fy, cx, cy: pixels (floats or 0-d
-    tensors). background: [3] color behind the Gaussians (default black).
+    cam_to_world: [4, 4] rigid OpenCV camera-to-world (tensor, may require grad). fx, fy, cx, cy:
+    pixels, numbers or 0-d tensors (no gradient). width, height: pixels. background: [3] color
+    behind the Gaussians (default black; gets a gradient if it requires one).
 
     Returns a :class:`RasterOutput` of ``[H, W, C]`` tensors; gradients flow to every tensor
     input. Raises ShapeError / ConfigError / NumericalError naming the offending argument.
@@ -273,23 +289,23 @@ def rasterize(
     for name, v in (("width", width), ("height", height)):
         if isinstance(v, bool) or not isinstance(v, int) or v < 1:
             raise ConfigError(f"{name}: expected an int >= 1, got {v!r}")
-    means = _check_tensor(means, "means", (None, 3), None)
+    means = _check_tensor(means, "means", (None, 3), None, False)
     dtype = means.dtype
     if dtype not in (torch.float32, torch.float64):
         raise ShapeError(f"means: dtype must be float32 or float64, got {dtype}")
     n = means.shape[0]
-    quats = _check_tensor(quats, "quats", (n, 4), dtype)
-    scales = _check_tensor(scales, "scales", (n, 3), dtype)
+    quats = _check_tensor(quats, "quats", (n, 4), dtype, False)
+    scales = _check_tensor(scales, "scales", (n, 3), dtype, False)
 
     def col(x, name):
         if isinstance(x, torch.Tensor) and x.dim() == 2 and x.shape[1:] == (1,):
-            x = x[:, 0]
-        return _check_tensor(x, name, (n,), dtype)
+            x = x.reshape(-1)
+        return _check_tensor(x, name, (n,), dtype, False)
 
     opacities = col(opacities, "opacities")
-    colors = _check_tensor(colors, "colors", (n, 3), dtype)
-    normals = _check_tensor(normals, "normals", (n, 3), dtype)
-    albedo = _check_tensor(albedo, "albedo", (n, 3), dtype)
+    colors = _check_tensor(colors, "colors", (n, 3), dtype, False)
+    normals = _check_tensor(normals, "normals", (n, 3), dtype, False)
+    albedo = _check_tensor(albedo, "albedo", (n, 3), dtype, False)
     roughness = col(roughness, "roughness")
     metallic = col(metallic, "metallic")
     cam_to_world = _check_tensor(torch.as_tensor(cam_to_world) if not isinstance(cam_to_world, torch.Tensor)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 import torch
-from raster_scenes import CHANNELS, NAMES, camera, random_scene
+from raster_scenes import NAMES, camera, random_scene
 
 from core.raster import RasterSettings, rasterize
 from core.raster.reference import reference_rasterize

@@ -100,3 +100,20 @@ def test_rasterize_gaussians_container():
     out = rasterize_gaussians(g, *cam)
     ref = reference_rasterize(*scene, *cam)
     _compare(out, ref, rtol=1e-5, atol=1e-8)
+
+
+def test_random_scenes_property():
+    from hypothesis import HealthCheck, given, settings
+    from hypothesis import strategies as st
+
+    @settings(max_examples=15, deadline=None, suppress_health_check=list(HealthCheck))
+    @given(n=st.integers(0, 60), width=st.integers(1, 40), height=st.integers(1, 40), seed=st.integers(0, 10_000),
+           tilted=st.booleans(), opac_hi=st.floats(0.05, 1.0))
+    def check(n, width, height, seed, tilted, opac_hi):
+        scene = random_scene(n, seed, opacity=(0.0, opac_hi))
+        cam = camera(width, height, tilted=tilted)
+        out = rasterize(*scene, *cam)
+        ref = reference_rasterize(*scene, *cam)
+        _compare(out, ref, rtol=1e-5, atol=1e-9)
+
+    check()
