@@ -38,7 +38,8 @@ from typing import Any
 import torch
 
 from core.errors import ConfigError, NumericalError, ShapeError
-from core.numerics import EPS_NORM_SQ, require_finite
+from core.numerics import require_finite
+from core.rotations import quat_normalize, quat_to_rotmat  # noqa: F401 - re-exported
 from core.raster import _native
 from core.raster.settings import NUM_FEATURES, NUM_OUTPUTS, RasterOutput, RasterSettings
 
@@ -47,37 +48,9 @@ TILE = 16
 _INPUT_NAMES = ("means", "quats", "scales", "opacities", "colors", "normals", "albedo", "roughness", "metallic")
 
 
-# ---------------------------------------------------------------------------------------------
-# helpers (torch) shared with core.gaussians
-# ---------------------------------------------------------------------------------------------
+# Quaternion helpers live in core.rotations (one home for rotation maths); re-exported here.
+safe_normalize_quat = quat_normalize
 
-def safe_normalize_quat(q: torch.Tensor) -> torch.Tensor:
-    """Unit quaternions (wxyz) ``[N, 4]``; (near-)zero quaternions become the identity (1,0,0,0)
-    with zero gradient, never NaN. Same rule as the kernels (|q|^2 <= EPS_NORM_SQ -> identity)."""
-    n2 = (q * q).sum(-1, keepdim=True)
-    ok = n2 > EPS_NORM_SQ
-    unit = q * torch.rsqrt(torch.where(ok, n2, torch.ones_like(n2)))
-    ident = torch.zeros_like(q)
-    ident[..., 0] = 1.0
-    return torch.where(ok, unit, ident)
-
-
-def quat_to_rotmat(q: torch.Tensor) -> torch.Tensor:
-    """Rotation matrices ``[N, 3, 3]`` of unit quaternions ``[N, 4]`` (wxyz)."""
-    w, x, y, z = q.unbind(-1)
-    return torch.stack(
-        [
-            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-        ],
-        dim=-1,
-    ).reshape(q.shape[:-1] + (3, 3))
-
-
-# ---------------------------------------------------------------------------------------------
-# the autograd function (C++ kernels)
-# ---------------------------------------------------------------------------------------------
 
 def _ptr(t: torch.Tensor | None) -> int | None:
     return None if t is None else t.data_ptr()
