@@ -103,3 +103,47 @@ def require_finite(x, name: str):
 
 
 PI = math.pi
+
+
+# ---------------------------------------------------------------------------------------------
+# guards of the physically based rendering pass (core.pbr)
+# ---------------------------------------------------------------------------------------------
+
+#: Smallest GGX ``alpha = roughness^2`` used anywhere (i.e. roughness >= ~0.0316). GGX is a delta
+#: at alpha = 0; at 1e-3 its peak D = 1 / (pi alpha^2) ~ 3.2e5 per sr and its square stays far
+#: inside float32, while the lobe is narrower than one pixel of a 512x1024 environment map.
+GGX_ALPHA_MIN = 1e-3
+#: Smallest squared distance (m^2) between a shading point and a point light used in the 1/d^2
+#: falloff: a light closer than 1 cm is treated as 1 cm away, so a light exactly at the shading
+#: point gives a large but finite irradiance.
+LIGHT_DIST_SQ_MIN = 1e-4
+#: Largest ``intensity * max(color)`` of a local light (W/sr-like units): with LIGHT_DIST_SQ_MIN
+#: and the GGX peak above, the contribution stays below ~1e25, inside float32.
+LIGHT_INTENSITY_MAX = 1e15
+#: Floor of an environment map's radiance in its log-space parameterisation: log(0) is -inf,
+#: so zero pixels are stored as log(1e-8) (1e-8 is far below any visible radiance).
+LOG_RADIANCE_FLOOR = 1e-8
+
+
+def safe_div(a, b, eps: float = EPS_PDF):
+    """torch: ``a / b`` where ``|b| > eps``, else 0; both branches guarded (finite gradients)."""
+    import torch
+
+    ok = b.abs() > eps
+    return torch.where(ok, a / torch.where(ok, b, torch.ones_like(b)), torch.zeros_like(a * b))
+
+
+def smoothstep(edge0, edge1, x):
+    """torch: Hermite ``3t^2 - 2t^3`` of ``t = clamp((x - edge0) / (edge1 - edge0), 0, 1)``.
+
+    ``edge1 <= edge0`` (an empty interval) is a hard step ``x >= edge0``, never a division by 0.
+    Edges may be tensors broadcasting with ``x``."""
+    import torch
+
+    e0 = torch.as_tensor(edge0, dtype=x.dtype, device=x.device)
+    e1 = torch.as_tensor(edge1, dtype=x.dtype, device=x.device)
+    width = e1 - e0
+    ok = width > EPS_PDF
+    t = torch.where(ok, (x - e0) / torch.where(ok, width, torch.ones_like(width)), (x >= e0).to(x.dtype))
+    t = t.clamp(0.0, 1.0)
+    return t * t * (3.0 - 2.0 * t)
