@@ -91,6 +91,16 @@ class Gaussians:
     def __post_init__(self) -> None:
         self.validate()
 
+    @classmethod
+    def _trusted(cls, **fields_) -> "Gaussians":
+        """Build without :meth:`validate`: only for results of operations on already validated
+        containers (cat, index, rigid transforms), where a full finiteness scan per call would
+        cost more than the operation itself in a training step."""
+        g = object.__new__(cls)
+        for k, v in fields_.items():
+            object.__setattr__(g, k, v)
+        return g
+
     # -- validation ----------------------------------------------------------------------------
     def validate(self) -> None:
         """Raise ShapeError / NumericalError naming the field if shapes, dtypes, devices or
@@ -231,13 +241,13 @@ class Gaussians:
     # -- manipulation --------------------------------------------------------------------------
     def to(self, dtype: torch.dtype | None = None, device=None) -> "Gaussians":
         """A copy converted to ``dtype`` and/or ``device`` (differentiable, like Tensor.to)."""
-        return Gaussians(**{k: v.to(device=device, dtype=dtype) for k, v in self.tensors().items()})
+        return Gaussians._trusted(**{k: v.to(device=device, dtype=dtype) for k, v in self.tensors().items()})
 
     def detach(self) -> "Gaussians":
-        return Gaussians(**{k: v.detach() for k, v in self.tensors().items()})
+        return Gaussians._trusted(**{k: v.detach() for k, v in self.tensors().items()})
 
     def clone(self) -> "Gaussians":
-        return Gaussians(**{k: v.clone() for k, v in self.tensors().items()})
+        return Gaussians._trusted(**{k: v.clone() for k, v in self.tensors().items()})
 
     def index(self, idx) -> "Gaussians":
         """Subset by a bool mask [N], an index tensor/list, or a slice."""
@@ -250,7 +260,7 @@ class Gaussians:
             idx = torch.as_tensor(idx, dtype=torch.long)
         elif not isinstance(idx, slice):
             raise ShapeError(f"idx: expected a mask, indices or a slice, got {type(idx).__name__}")
-        return Gaussians(**{k: v[idx] for k, v in self.tensors().items()})
+        return Gaussians._trusted(**{k: v[idx] for k, v in self.tensors().items()})
 
     select = index
     __getitem__ = index
@@ -266,7 +276,7 @@ class Gaussians:
                 raise ShapeError(f"items[{i}]: expected Gaussians, got {type(g).__name__}")
             if g.dtype != items[0].dtype:
                 raise ShapeError(f"items[{i}]: dtype {g.dtype} differs from items[0] ({items[0].dtype})")
-        return Gaussians(**{k: torch.cat([getattr(g, k) for g in items], 0) for k in _WIDTHS})
+        return Gaussians._trusted(**{k: torch.cat([getattr(g, k) for g in items], 0) for k in _WIDTHS})
 
     # -- files ---------------------------------------------------------------------------------
     def save(self, path: str | Path) -> None:

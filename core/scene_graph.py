@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from core.errors import ConfigError, FormatError, ShapeError
+from core.errors import ConfigError, FormatError, NumericalError, ShapeError
 from core.gaussians import Gaussians
 from core.numerics import require_finite
 from core.rotations import axis_angle_to_quat, quat_mul, quat_slerp, quat_to_rotmat, rotmat_to_quat
@@ -111,7 +111,9 @@ def transform_gaussians(g: Gaussians, q: torch.Tensor, t: torch.Tensor) -> Gauss
     means, rotations and normals change; scales, opacity and materials do not. Differentiable in
     g, q and t."""
     r = quat_to_rotmat(q)
-    return Gaussians(
+    if not (bool(torch.isfinite(q).all()) and bool(torch.isfinite(t).all())):
+        raise NumericalError("transform_gaussians: pose (q, t) holds NaN or Inf")
+    return Gaussians._trusted(
         means=g.means @ r.T + t,
         quats=quat_mul(q.expand_as(g.quats), g.quats),
         log_scales=g.log_scales,

@@ -71,7 +71,7 @@ class NVSConfig:
 NVS_PROFILES = {
     "tiny": NVSConfig(iterations=60, densify_from=20, densify_until=50, densify_every=15,
                       init=LidarInitConfig(max_background_points=3000, max_object_points=300)),
-    "quick": NVSConfig(),
+    "quick": NVSConfig(density=DensityConfig(max_gaussians=80_000)),
     "benchmark": NVSConfig(iterations=7000, densify_until=4000, opacity_reset_every=3000),
 }
 
@@ -162,6 +162,14 @@ class NVSModel:
         torch.save({"sky": self.sky.state_dict(), **(extra or {})}, path / "sky.pt")
 
 
+def _mean_sky_colour(views: list[_View]) -> tuple[float, float, float]:
+    sky = [v.image[v.nonsky[..., 0] < 0.5] for v in views if v.nonsky is not None]
+    sky = [s for s in sky if len(s)]
+    if not sky:
+        return (0.6, 0.7, 0.8)
+    return tuple(float(x) for x in torch.cat(sky).mean(0))
+
+
 def _bce(o: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     o = o.clamp(1e-4, 1 - 1e-4)
     return -(target * torch.log(o) + (1 - target) * torch.log(1 - o)).mean()
@@ -205,7 +213,7 @@ def train_nvs(bundle: SceneBundle, cfg: NVSConfig, out_dir: str | Path | None = 
             raise ConfigError("bundle: has no train frames")
         bg, nodes = gaussians_from_lidar(bundle, cfg.init)
         graph = SceneGraph.from_bundle_objects(bundle.manifest, bg, nodes)
-        model = NVSModel(graph, SkyDome())
+        model = NVSModel(graph, SkyDome(64, 128, _mean_sky_colour(train)))
         settings = RasterSettings(threads=cfg.threads)
         extent = scene_extent(torch.stack([v.cam_to_world[:3, 3] for v in train]))
         opts = [GaussianAdam(g, cfg.lr) for g in model.containers()]
