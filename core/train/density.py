@@ -71,9 +71,12 @@ class DensityController:
         self.count[touched] += 1
 
     @torch.no_grad()
-    def densify_and_prune(self, opt: GaussianAdam, prune_large: bool) -> dict[str, int]:
-        """Clone / split / prune in place on ``opt.g``; returns counts."""
+    def densify_and_prune(self, opt: GaussianAdam, prune_large: bool,
+                          max_gaussians: int | None = None) -> dict[str, int]:
+        """Clone / split / prune in place on ``opt.g``; returns counts. ``max_gaussians``
+        overrides the configured cap (a trainer with several containers shares one cap)."""
         cfg = self.cfg
+        cap = cfg.max_gaussians if max_gaussians is None else int(max_gaussians)
         g = opt.g
         n = g.num
         avg = torch.where(self.count > 0, self.grad_accum / self.count.clamp_min(1), torch.zeros_like(self.count))
@@ -81,7 +84,7 @@ class DensityController:
         smax = scales.max(1).values
         big = smax > cfg.percent_dense * self.extent
         cand = avg >= cfg.grad_threshold
-        room = max(0, cfg.max_gaussians - n)
+        room = max(0, cap - n)
         clone = cand & ~big
         split = cand & big
         # cap: a split adds one net Gaussian (2 children replace the parent), a clone adds one

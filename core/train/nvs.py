@@ -250,7 +250,9 @@ def train_nvs(bundle: SceneBundle, cfg: NVSConfig, out_dir: str | Path | None = 
                                         w2c, v.fx, v.fy, v.width, v.height)
             if in_window and it % cfg.densify_every == 0:
                 for ci, (o, dc) in enumerate(zip(opts, dens)):
-                    dc.densify_and_prune(o, prune_large=cfg.opacity_reset_every > 0 and it > cfg.opacity_reset_every)
+                    others = sum(x.g.num for x in opts) - o.g.num  # one cap for the whole scene
+                    dc.densify_and_prune(o, prune_large=cfg.opacity_reset_every > 0 and it > cfg.opacity_reset_every,
+                                         max_gaussians=cfg.density.max_gaussians - others)
                     model.set_container(ci, o.g)
             if cfg.opacity_reset_every and it % cfg.opacity_reset_every == 0 and it < cfg.densify_until:
                 for o, dc in zip(opts, dens):
