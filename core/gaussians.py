@@ -10,8 +10,15 @@ Stored (unconstrained, what an optimizer updates)          activated (what the r
                                                             and gradients for any input)
 ``opacity_logits``  [N, 1]                                  ``sigmoid``
 ``normals``         [N, 3] world                            unit vector (zero stays zero)
-``color_logits``    [N, 3]                                  ``sigmoid``: view-independent RGB in
-                                                            [0, 1] (no spherical harmonics)
+``color_logits``    [N, 3]                                  ``sigmoid``: base RGB in (0, 1)
+``view_dep``        [N, 9] (optional, default zeros)        view-dependent colour: a 3x3 matrix
+                                                            W (row = R, G, B; columns = world
+                                                            x, y, z), added in logit space:
+                                                            ``sigmoid(color_logits + W d)`` for
+                                                            the unit direction d from the camera
+                                                            to the Gaussian (degree-1 spherical
+                                                            harmonics written in Cartesian form,
+                                                            so a rigid rotation R maps W -> W R^T)
 ``albedo_logits``   [N, 3]                                  ``sigmoid``
 ``roughness_logits``[N, 1]                                  ``sigmoid``
 ``metallic_logits`` [N, 1]                                  ``sigmoid``
@@ -27,7 +34,9 @@ loaded with ``weights_only=True``::
      "means": Tensor[N, 3], "quats": Tensor[N, 4], "log_scales": Tensor[N, 3],
      "opacity_logits": Tensor[N, 1], "normals": Tensor[N, 3], "color_logits": Tensor[N, 3],
      "albedo_logits": Tensor[N, 3], "roughness_logits": Tensor[N, 1],
-     "metallic_logits": Tensor[N, 1]}
+     "metallic_logits": Tensor[N, 1], "view_dep": Tensor[N, 9]}
+
+Version 1 files (no ``view_dep``) load with view-independent colour.
 
 Tensors are saved detached, contiguous, on the CPU, in their dtype. Unknown extra keys are
 ignored on load; a different ``format`` or a newer ``version`` is a :class:`FormatError`.
@@ -46,7 +55,7 @@ from core.errors import FormatError, ShapeError
 from core.numerics import require_finite, safe_normalize
 
 FORMAT_NAME = "brdfusion.gaussians"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 #: Sigmoid inputs are built from activated values clamped to [LOGIT_EPS, 1 - LOGIT_EPS]: in
 #: float32, 1 - 1e-6 is still distinguishable from 1, and logit(1e-6) = -13.8 is finite.
 LOGIT_EPS = 1e-6
@@ -66,6 +75,7 @@ _WIDTHS = {
     "albedo_logits": 3,
     "roughness_logits": 1,
     "metallic_logits": 1,
+    "view_dep": 9,
 }
 
 
@@ -87,8 +97,11 @@ class Gaussians:
     albedo_logits: torch.Tensor
     roughness_logits: torch.Tensor
     metallic_logits: torch.Tensor
+    view_dep: torch.Tensor | None = None
 
     def __post_init__(self) -> None:
+        if self.view_dep is None and isinstance(self.means, torch.Tensor):
+            self.view_dep = torch.zeros(self.means.shape[0], 9, dtype=self.means.dtype, device=self.means.device)
         self.validate()
 
     @classmethod
@@ -99,6 +112,9 @@ class Gaussians:
         g = object.__new__(cls)
         for k, v in fields_.items():
             object.__setattr__(g, k, v)
+        if fields_.get("view_dep") is None:
+            m = fields_["means"]
+            g.view_dep = torch.zeros(m.shape[0], 9, dtype=m.dtype, device=m.device)
         return g
 
     # -- validation ----------------------------------------------------------------------------
@@ -174,9 +190,14 @@ class Gaussians:
         """[N, 3] unit world normals (zero vectors stay zero)."""
         return safe_normalize(self.normals)
 
-    def colors(self) -> torch.Tensor:
-        """[N, 3] RGB in (0, 1)."""
-        return torch.sigmoid(self.color_logits)
+    def colors(self, cam_center: torch.Tensor | None = None) -> torch.Tensor:
+        """[N, 3] RGB in (0, 1): the base colour, or the colour seen from ``cam_center`` [3]
+        (world, metres) including the view-dependent term."""
+        if cam_center is None:
+            return torch.sigmoid(self.color_logits)
+        d = safe_normalize(self.means - cam_center.to(self.means.dtype))
+        w = self.view_dep.reshape(-1, 3, 3)
+        return torch.sigmoid(self.color_logits + (w @ d[:, :, None])[:, :, 0])
 
     def albedo(self) -> torch.Tensor:
         """[N, 3] in (0, 1)."""
@@ -190,14 +211,15 @@ class Gaussians:
         """[N, 1] in (0, 1)."""
         return torch.sigmoid(self.metallic_logits)
 
-    def activated(self) -> dict[str, torch.Tensor]:
-        """Every activated attribute, keyed as :func:`core.raster.rasterize` names its arguments."""
+    def activated(self, cam_center: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+        """Every activated attribute, keyed as :func:`core.raster.rasterize` names its arguments
+        (colours as seen from ``cam_center`` when given)."""
         return {
             "means": self.means,
             "quats": self.rotations(),
             "scales": self.scales(),
             "opacities": self.opacities(),
-            "colors": self.colors(),
+            "colors": self.colors(cam_center),
             "normals": self.unit_normals(),
             "albedo": self.albedo(),
             "roughness": self.roughness(),
@@ -306,6 +328,8 @@ class Gaussians:
             raise FormatError(f"{path} [version]: unsupported version {version!r}")
         kwargs = {}
         for k in _WIDTHS:
+            if k == "view_dep" and version == 1:
+                continue  # version 1: view-independent colour (zeros)
             if k not in payload or not isinstance(payload[k], torch.Tensor):
                 raise FormatError(f"{path} [{k}]: missing or not a tensor")
             kwargs[k] = payload[k]

@@ -108,8 +108,8 @@ class RigidNode:
 
 def transform_gaussians(g: Gaussians, q: torch.Tensor, t: torch.Tensor) -> Gaussians:
     """Gaussians moved by the rigid transform (rotation quaternion q [4] wxyz, translation t [3]):
-    means, rotations and normals change; scales, opacity and materials do not. Differentiable in
-    g, q and t."""
+    means, rotations, normals and the view-dependent colour matrix change; scales, opacity and
+    materials do not. Differentiable in g, q and t."""
     r = quat_to_rotmat(q)
     if not (bool(torch.isfinite(q).all()) and bool(torch.isfinite(t).all())):
         raise NumericalError("transform_gaussians: pose (q, t) holds NaN or Inf")
@@ -123,6 +123,7 @@ def transform_gaussians(g: Gaussians, q: torch.Tensor, t: torch.Tensor) -> Gauss
         albedo_logits=g.albedo_logits,
         roughness_logits=g.roughness_logits,
         metallic_logits=g.metallic_logits,
+        view_dep=(g.view_dep.reshape(-1, 3, 3) @ r.T).reshape(-1, 9),  # W -> W R^T
     )
 
 

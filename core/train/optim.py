@@ -37,6 +37,8 @@ class GaussianLR:
     """Roughness logit."""
     metallic_logits: float = 1e-2
     """Metallic logit."""
+    view_dep: float = 2.5e-3
+    """View-dependent colour matrix (3DGS: the higher SH bands learn 20x slower than the base)."""
 
 
 class GaussianAdam:

@@ -56,7 +56,7 @@ def test_activation_gradients_finite_for_degenerate_parameters():
     g.normals = torch.zeros(5, 3, dtype=torch.float64)
     g.opacity_logits = torch.tensor([[1e4], [-1e4], [0.0], [50.0], [-50.0]], dtype=torch.float64)
     g.requires_grad_()
-    a = g.activated()
+    a = g.activated(cam_center=torch.tensor([0.5, -2.0, 1.0], dtype=torch.float64))  # uses view_dep too
     loss = sum(v.sum() for v in a.values())
     grads = torch.autograd.grad(loss, g.parameters())
     assert all(torch.isfinite(x).all() for x in grads)
