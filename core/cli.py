@@ -1,7 +1,9 @@
 """``brdf``: the command-line entry point of the BRDFusion library (no server needed).
 
-Subcommands: generate, validate, import, render, info, pack, unpack. Errors from ``core`` print
-one clear line (file, field, what is wrong) and exit with status 2; never a traceback.
+Subcommands: generate, validate, import, render, info, pack, unpack; and the rendering service's
+serve, worker, up, keys (implemented in ``services.cli``, imported only when one of them runs).
+Errors from ``core`` print one clear line (file, field, what is wrong) and exit with status 2;
+never a traceback.
 """
 
 from __future__ import annotations
@@ -97,6 +99,27 @@ def cmd_render(a: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_train(a: argparse.Namespace) -> int:
+    from dataclasses import replace
+
+    from core.train.nvs import NVS_PROFILES, train_nvs
+
+    if a.profile not in NVS_PROFILES:
+        raise CoreError(f"--profile: unknown profile {a.profile!r} (known: {sorted(NVS_PROFILES)})")
+    cfg = NVS_PROFILES[a.profile]
+    if a.iterations is not None:
+        cfg = replace(cfg, iterations=a.iterations)
+    b = _open_any(a.scene)
+    out = Path(a.out) if a.out else REPO_ROOT / "runs" / f"{b.name}_nvs_{a.profile}"
+    s = train_nvs(b, cfg, out, progress=not a.quiet)
+    print(f"scene {b.name!r}, profile {a.profile}: {s['iterations']} iterations in {s['train_seconds']} s, "
+          f"{s['gaussians']} Gaussians")
+    print(f"  held-out (test trajectory) PSNR {s['test_psnr']:.2f} dB, SSIM {s['test_ssim']:.3f}; "
+          f"train PSNR {s['train_psnr']:.2f} dB")
+    print(f"  outputs: {out}")
+    return 0
+
+
 def cmd_info(a: argparse.Namespace) -> int:
     b = _open_any(a.path)
     m = b.manifest
@@ -123,6 +146,22 @@ def cmd_unpack(a: argparse.Namespace) -> int:
 
     print(f"bundle root: {unpack_bundle(a.archive, a.dest)}")
     return 0
+
+
+def cmd_service(a: argparse.Namespace) -> int:
+    """serve / worker / up / keys: the service lives outside ``core`` (see services/cli.py)."""
+    from services import cli as svc
+
+    try:
+        if a.cmd == "serve":
+            return svc.serve(a.host, a.port)
+        if a.cmd == "worker":
+            return svc.worker(a.queues, burst=a.burst, fork=not a.no_fork, name=a.name, nice=a.nice)
+        if a.cmd == "up":
+            return svc.up(a.host, a.port, a.workers)
+        return svc.keys_create(a.tenant, a.scope, a.name)
+    except svc.ServiceError as e:
+        raise CoreError(str(e)) from None
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -164,6 +203,14 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--quiet", action="store_true")
     r.set_defaults(fn=cmd_render)
 
+    t = sub.add_parser("train", help="fit Gaussians to a scene (volume stage without priors, NVS)")
+    t.add_argument("--scene", default=str(DEFAULT_SCENE), help="bundle dir or archive (default: bundled scene)")
+    t.add_argument("--profile", default="quick", help="tiny | quick | benchmark (default quick)")
+    t.add_argument("--iterations", type=int, default=None, help="override the profile's iterations")
+    t.add_argument("--out", default=None, help="output directory (default runs/<scene>_nvs_<profile>)")
+    t.add_argument("--quiet", action="store_true")
+    t.set_defaults(fn=cmd_train)
+
     n = sub.add_parser("info", help="summarise a scene bundle")
     n.add_argument("path")
     n.set_defaults(fn=cmd_info)
@@ -177,6 +224,32 @@ def build_parser() -> argparse.ArgumentParser:
     u.add_argument("archive")
     u.add_argument("dest")
     u.set_defaults(fn=cmd_unpack)
+
+    sv = sub.add_parser("serve", help="run the HTTP gateway (settings from BRDF_* environment variables)")
+    sv.add_argument("--host", default="127.0.0.1")
+    sv.add_argument("--port", type=int, default=8000)
+    sv.set_defaults(fn=cmd_service)
+
+    wk = sub.add_parser("worker", help="run an RQ worker on the render and/or train queues")
+    wk.add_argument("--queues", default="render,train", help="comma-separated: render, train")
+    wk.add_argument("--burst", action="store_true", help="exit when the queues are empty")
+    wk.add_argument("--no-fork", action="store_true", help="run jobs in the worker process (warm models)")
+    wk.add_argument("--name", default=None)
+    wk.add_argument("--nice", type=int, default=0, help="lower the worker's CPU priority (0-19), e.g. beside a gateway")
+    wk.set_defaults(fn=cmd_service)
+
+    up = sub.add_parser("up", help="one machine: a gateway and workers against a local Redis")
+    up.add_argument("--host", default="127.0.0.1")
+    up.add_argument("--port", type=int, default=8000)
+    up.add_argument("--workers", type=int, default=1)
+    up.set_defaults(fn=cmd_service)
+
+    ky = sub.add_parser("keys", help="create an API key (shown once, stored hashed)")
+    ky.add_argument("action", choices=["create"])
+    ky.add_argument("--tenant", required=True)
+    ky.add_argument("--scope", choices=["client", "operator"], default="client")
+    ky.add_argument("--name", default="")
+    ky.set_defaults(fn=cmd_service)
     return p
 
 

@@ -1,9 +1,16 @@
 #!/usr/bin/env bash
 # Create .venv and install the project with its pinned dependencies.
 # torch is installed first, pinned to the CPU build (2.13.0+cpu): on these machines the wheel lies
-# in /opt/wheels; elsewhere it comes from PyTorch's CPU index. Either way no CUDA build is pulled.
+# in /opt/wheels (TORCH_WHEEL_DIR overrides); the "+cpu" pin means no CUDA build is ever pulled.
 set -euo pipefail
 cd "$(dirname "$0")/.."
+# System packages the service tests need (headless browser tests of the dashboard): installed only
+# when missing, only as root with apt-get; BRDF_SKIP_SYSTEM_PACKAGES=1 skips this (image builds).
+if [ "${BRDF_SKIP_SYSTEM_PACKAGES:-0}" != "1" ] && [ "$(id -u)" = "0" ] && command -v apt-get >/dev/null 2>&1 \
+   && { ! command -v chromium >/dev/null 2>&1 || ! command -v chromedriver >/dev/null 2>&1; }; then
+  echo "installing chromium and chromium-driver (dashboard browser tests)"
+  apt-get update -qq >/dev/null && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium chromium-driver >/dev/null
+fi
 PY=${PYTHON:-python3.11}
 command -v "$PY" >/dev/null 2>&1 || PY=python3
 if [ ! -x .venv/bin/python ]; then

@@ -1,0 +1,1 @@
+"""The FastAPI gateway and the operator dashboard of the BRDFusion rendering service."""

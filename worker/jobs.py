@@ -1,0 +1,368 @@
+"""RQ job functions: claim a job in the database, run its registered type, report progress,
+heartbeats and artifacts, and settle the outcome (done, retry, failed, canceled).
+
+Only ``run_job(job_id, attempt)`` is ever enqueued (JSON arguments). The job function:
+
+1. claims the attempt with a compare-and-set (``queued`` -> ``running`` where ``attempts`` is
+   this attempt), so a duplicate or stale RQ job does nothing;
+2. starts a heartbeat thread that every ``heartbeat_s`` writes progress, ETA and a heartbeat to
+   the database (and progress to the RQ job's ``meta``), and watches for cancellation: a job
+   canceled in the database is interrupted in the job's main thread (SIGUSR1 -> JobCanceled);
+3. on success registers the artifacts and sets ``done`` in one transaction; on a CoreError
+   (bad input: retrying cannot help) or a timeout sets ``failed`` with the error; on any other
+   exception queues the next attempt while attempts are left.
+"""
+
+from __future__ import annotations
+
+import logging
+import mimetypes
+import os
+import shutil
+import signal
+import socket
+import threading
+import time
+from dataclasses import dataclass, field
+from datetime import datetime
+from pathlib import Path
+
+from sqlalchemy import delete, select, update
+
+from api_schemas import OutputKind, RenderRequest
+from worker.db import Artifact, Database, Job, JobStage, Scene, get_database, utcnow
+from worker.registry import JobType, register
+from worker.settings import QUEUE_RENDER, Settings, get_settings
+from worker.storage import ArtifactStore, get_store
+
+log = logging.getLogger("brdf.jobs")
+
+CONTENT_TYPES = {".exr": "image/x-exr", ".mp4": "video/mp4", ".png": "image/png", ".json": "application/json",
+                 ".zip": "application/zip", ".gz": "application/gzip", ".hdr": "image/vnd.radiance"}
+
+
+def content_type(name: str) -> str:
+    ext = os.path.splitext(name)[1].lower()
+    return CONTENT_TYPES.get(ext) or mimetypes.guess_type(name)[0] or "application/octet-stream"
+
+
+class JobCanceled(BaseException):
+    """Raised in the job's main thread when the job was canceled (BaseException so that a job
+    function's ``except Exception`` cannot swallow it)."""
+
+
+@dataclass
+class _Progress:
+    stage: str | None = None
+    fraction: float = 0.0
+    dirty: bool = True
+    stage_fraction: dict[str, float] = field(default_factory=dict)
+
+
+class JobContext:
+    """What a job function gets: its row, a scratch directory, the store, and progress calls."""
+
+    def __init__(self, settings: Settings, db: Database, store: ArtifactStore, job: Job, workdir: Path):
+        self.settings = settings
+        self.db = db
+        self.store = store
+        self.job = job
+        self.workdir = workdir
+        self.started = time.monotonic()
+        self.canceled = threading.Event()
+        self._p = _Progress()
+        self._artifacts: list[tuple[str, str, int]] = []
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.interrupt = threading.current_thread() is threading.main_thread()
+
+    # -- called by job functions -----------------------------------------------------------
+    def stage(self, name: str, weight_done: float | None = None) -> None:
+        """Enter stage ``name``; the previous stage is marked done."""
+        now = utcnow()
+        with self.db.session() as s:
+            if self._p.stage:
+                s.execute(update(JobStage).where(JobStage.job_id == self.job.id, JobStage.name == self._p.stage)
+                          .values(state="done", progress=1.0, finished_at=now))
+            s.execute(update(JobStage).where(JobStage.job_id == self.job.id, JobStage.name == name)
+                      .values(state="running", started_at=now, progress=0.0))
+            s.execute(update(Job).where(Job.id == self.job.id, Job.state == "running").values(stage=name))
+        with self._lock:
+            self._p.stage = name
+            self._p.dirty = True
+
+    def progress(self, fraction: float, stage_fraction: float | None = None) -> None:
+        """Report overall progress in [0, 1] (and optionally the current stage's)."""
+        with self._lock:
+            self._p.fraction = min(max(float(fraction), self._p.fraction), 1.0)
+            if stage_fraction is not None and self._p.stage:
+                self._p.stage_fraction[self._p.stage] = min(max(float(stage_fraction), 0.0), 1.0)
+            self._p.dirty = True
+
+    def add_artifact(self, local_path: Path, name: str) -> None:
+        """Upload a finished output file; it is listed once the job is done."""
+        key = f"jobs/{self.job.id}/{self.job.attempts}/{name}"
+        size = self.store.put_file(local_path, key)
+        self._artifacts.append((name, key, size))
+
+    def check_canceled(self) -> None:
+        if self.canceled.is_set():
+            raise JobCanceled()
+
+    def scene_dir(self) -> Path:
+        """The job's scene bundle, unpacked in this machine's scene cache (fetched from the
+        artifact store the first time, so workers on other machines need no shared disk)."""
+        from core.bundle import ArchiveLimits, unpack_bundle
+
+        with self.db.session() as s:
+            scene = s.get(Scene, self.job.scene_id)
+            if scene is None:
+                raise LookupError(f"scene {self.job.scene_id} is gone")
+            key, fmt = scene.storage_key, scene.archive_format
+        cache = self.settings.data_dir / "cache" / "scenes" / self.job.scene_id
+        marker = cache / ".complete"
+        if marker.is_file():
+            return Path(marker.read_text())
+        tmp = self.workdir / f"bundle.{fmt}"
+        self.store.get_file(key, tmp)
+        staging = cache.parent / f".{self.job.scene_id}.{os.getpid()}.{time.time_ns()}"
+        root = unpack_bundle(tmp, staging / "b", ArchiveLimits(
+            max_entries=self.settings.archive_max_entries, max_total_bytes=self.settings.archive_max_total_bytes))
+        rel = root.relative_to(staging)
+        try:
+            os.replace(staging, cache)
+        except OSError:  # another worker cached it meanwhile
+            shutil.rmtree(staging, ignore_errors=True)
+        else:
+            marker.write_text(str(cache / rel))
+        tmp.unlink(missing_ok=True)
+        return Path(marker.read_text())
+
+    # -- heartbeat thread ------------------------------------------------------------------
+    def _flush(self) -> None:
+        with self._lock:
+            p = self._p.fraction
+            stage = self._p.stage
+            stage_fracs = dict(self._p.stage_fraction)
+            self._p.dirty = False
+        elapsed = time.monotonic() - self.started
+        eta = elapsed * (1 - p) / p if p > 0.01 else None
+        with self.db.session() as s:
+            s.execute(update(Job).where(Job.id == self.job.id, Job.state == "running",
+                                        Job.attempts == self.job.attempts)
+                      .values(heartbeat_at=utcnow(), progress=p, eta_s=eta))
+            for name, f in stage_fracs.items():
+                s.execute(update(JobStage).where(JobStage.job_id == self.job.id, JobStage.name == name,
+                                                 JobStage.state == "running").values(progress=f))
+            state = s.execute(select(Job.state, Job.attempts).where(Job.id == self.job.id)).one_or_none()
+        if state is None or state[0] == "canceled" or state[1] != self.job.attempts:
+            if not self.canceled.is_set():
+                self.canceled.set()
+                if self.interrupt:
+                    os.kill(os.getpid(), signal.SIGUSR1)
+        try:
+            from rq import get_current_job
+
+            rj = get_current_job()
+            if rj is not None:
+                rj.meta.update({"progress": p, "stage": stage, "eta_s": eta})
+                rj.save_meta()
+        except Exception:  # noqa: BLE001 - Redis is not the truth; the DB row was written
+            pass
+
+    def _beat(self) -> None:
+        while not self._stop.wait(self.settings.heartbeat_s):
+            try:
+                self._flush()
+            except Exception as e:  # noqa: BLE001 - keep beating through a transient DB error
+                log.warning("job %s heartbeat failed: %s", self.job.id, e)
+
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self._beat, name=f"heartbeat-{self.job.id}", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=10)
+
+
+def _claim(db: Database, job_id: str, attempt: int) -> Job | None:
+    now = utcnow()
+    worker = f"{socket.gethostname()}.{os.getpid()}"
+    try:
+        from rq import get_current_job
+
+        rj = get_current_job()
+        if rj is not None and rj.worker_name:
+            worker = rj.worker_name
+    except Exception:  # noqa: BLE001
+        pass
+    with db.session() as s:
+        n = s.execute(update(Job).where(Job.id == job_id, Job.state == "queued", Job.attempts == attempt)
+                      .values(state="running", started_at=now, heartbeat_at=now, worker_name=worker,
+                              progress=0.0, eta_s=None, finished_at=None)).rowcount
+        if not n:
+            return None
+        s.execute(update(JobStage).where(JobStage.job_id == job_id)
+                  .values(state="queued", progress=0.0, started_at=None, finished_at=None))
+        return s.get(Job, job_id)
+
+
+def _settle(db: Database, job: Job, **values) -> bool:
+    with db.session() as s:
+        return bool(s.execute(update(Job).where(Job.id == job.id, Job.state == "running",
+                                                Job.attempts == job.attempts)
+                              .values(finished_at=utcnow(), eta_s=None, **values)).rowcount)
+
+
+def run_job(job_id: str, attempt: int) -> dict:
+    """The RQ entry point (arguments are JSON). Returns a small JSON summary."""
+    from core.errors import CoreError
+
+    settings = get_settings()
+    db = get_database(settings.db_url)
+    store = get_store(settings.store_url, settings.artifact_store_options)
+    job = _claim(db, job_id, attempt)
+    if job is None:
+        return {"job": job_id, "attempt": attempt, "skipped": "not queued for this attempt (stale or canceled)"}
+    from worker.registry import REGISTRY
+
+    jt = REGISTRY.get(job.type)
+    workdir = settings.data_dir / "work" / f"{job.id}.{attempt}"
+    shutil.rmtree(workdir, ignore_errors=True)
+    workdir.mkdir(parents=True)
+    ctx = JobContext(settings, db, store, job, workdir)
+
+    def on_cancel(signum, frame):
+        if ctx.canceled.is_set():
+            raise JobCanceled()
+
+    main = threading.current_thread() is threading.main_thread()
+    old = signal.signal(signal.SIGUSR1, on_cancel) if main else None
+    ctx.start()
+    outcome = "failed"
+    try:
+        if jt is None:
+            raise CoreError(f"job type {job.type!r} is not available in this build")
+        params = jt.params.model_validate(job.params)
+        jt.run(ctx, params)
+        ctx.check_canceled()
+        ctx.stop()
+        with db.session() as s:
+            n = s.execute(update(Job).where(Job.id == job.id, Job.state == "running", Job.attempts == attempt)
+                          .values(state="done", progress=1.0, finished_at=utcnow(), eta_s=None, error=None)
+                          ).rowcount
+            if n:
+                s.execute(delete(Artifact).where(Artifact.job_id == job.id))
+                for name, key, size in ctx._artifacts:
+                    s.add(Artifact(job_id=job.id, name=name, kind=os.path.splitext(name)[1].lstrip(".").lower(),
+                                   content_type=content_type(name), size_bytes=size, storage_key=key))
+                s.execute(update(JobStage).where(JobStage.job_id == job.id, JobStage.state != "done")
+                          .values(state="done", progress=1.0, finished_at=utcnow()))
+        outcome = "done" if n else "superseded"
+    except JobCanceled:
+        outcome = "canceled"
+    except CoreError as e:
+        _settle(db, job, state="failed", error=f"{type(e).__name__}: {e}")
+    except Exception as e:  # noqa: BLE001 - anything else may be transient: retry
+        from rq.timeouts import JobTimeoutException
+
+        msg = f"{type(e).__name__}: {e}"
+        if isinstance(e, JobTimeoutException):
+            _settle(db, job, state="failed", error=f"timed out: {e}")
+        elif attempt < job.max_attempts:
+            with db.session() as s:
+                n = s.execute(update(Job).where(Job.id == job.id, Job.state == "running", Job.attempts == attempt)
+                              .values(state="queued", attempts=attempt + 1, eta_s=None, worker_name=None,
+                                      enqueued_at=None, error=f"attempt {attempt} failed: {msg}")).rowcount
+            if n:
+                job.attempts = attempt + 1
+                from worker.queue import redis_conn, try_enqueue
+
+                try_enqueue(settings, db, redis_conn(settings.redis_url), job)
+            outcome = "retry"
+        else:
+            _settle(db, job, state="failed", error=f"attempt {attempt} of {job.max_attempts} failed: {msg}")
+        log.exception("job %s attempt %d failed", job.id, attempt)
+    finally:
+        ctx.stop()
+        _final_meta(outcome)
+        if main:
+            signal.signal(signal.SIGUSR1, old)
+        shutil.rmtree(workdir, ignore_errors=True)
+        if outcome != "done":
+            try:
+                store.delete_prefix(f"jobs/{job.id}/{attempt}")
+            except Exception as e:  # noqa: BLE001
+                log.warning("job %s: could not remove partial outputs: %s", job.id, e)
+    return {"job": job_id, "attempt": attempt, "outcome": outcome}
+
+
+def _final_meta(outcome: str) -> None:
+    try:
+        from rq import get_current_job
+
+        rj = get_current_job()
+        if rj is not None:
+            rj.meta.update({"outcome": outcome, **({"progress": 1.0, "eta_s": 0.0} if outcome == "done" else {})})
+            rj.save_meta()
+    except Exception:  # noqa: BLE001 - Redis is not the truth
+        pass
+
+
+# --- job types ------------------------------------------------------------------------------
+
+
+def _watch_frames(ctx: JobContext, frames_dir: Path, total: int, stop: threading.Event) -> None:
+    """Progress of ``export_frames`` measured from the EXR files it has written."""
+    while not stop.wait(0.2):
+        try:
+            n = sum(1 for p in frames_dir.iterdir() if p.suffix == ".exr") if frames_dir.is_dir() else 0
+        except OSError:
+            continue
+        ctx.progress(0.9 * n / total, stage_fraction=n / total)
+
+
+def run_render(ctx: JobContext, p: RenderRequest) -> None:
+    """Export the scene's frames: multi-layer EXR per frame, MP4, a PNG preview (core.export)."""
+    from core.bundle import open_bundle
+    from core.export import export_frames
+
+    ctx.stage("fetch")
+    bundle = open_bundle(ctx.scene_dir())
+    frames = bundle.frames(None if p.split == "all" else p.split)
+    ctx.progress(0.02)
+    ctx.stage("export")
+    out = ctx.workdir / "out"
+    stop = threading.Event()
+    watcher = threading.Thread(target=_watch_frames, args=(ctx, out / "frames", max(len(frames), 1), stop),
+                               daemon=True)
+    watcher.start()
+    try:
+        res = export_frames(bundle, out, split=p.split, fps=p.fps, progress=False)
+    finally:
+        stop.set()
+        watcher.join()
+    ctx.check_canceled()
+    ctx.stage("upload")
+    want = {o.value if isinstance(o, OutputKind) else o for o in p.outputs}
+    files = []
+    if "exr" in want:
+        files += res.exr_files
+    if "mp4" in want:
+        files += res.videos
+    if "png" in want and res.preview is not None:
+        files.append(res.preview)
+    for i, f in enumerate(files):
+        ctx.check_canceled()
+        ctx.add_artifact(f, f.relative_to(out).as_posix())
+        ctx.progress(0.9 + 0.1 * (i + 1) / len(files), stage_fraction=(i + 1) / len(files))
+
+
+register(JobType("render", QUEUE_RENDER, RenderRequest, run_render, stages=("fetch", "export", "upload")))
+
+
+def format_ts(t: datetime | None) -> str | None:
+    return t.isoformat() if t else None

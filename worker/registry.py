@@ -1,0 +1,48 @@
+"""The job-type registry: one entry per job type that does real work.
+
+A job type is a name, the queue it runs on, the pydantic model of its parameters, its stages and
+one function ``run(ctx, params)``. The gateway accepts a submission only for a registered type,
+so an endpoint whose pipeline has not landed answers 409 "not available in this build"
+instead of queueing a fake job. Adding
+the relight job when the PBR pass lands is one function and one line::
+
+    def run_relight(ctx: JobContext, p: RelightRequest) -> None: ...
+    register(JobType("relight", QUEUE_RENDER, RelightRequest, run_relight, stages=("relight",)))
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Callable
+
+from pydantic import BaseModel
+
+if TYPE_CHECKING:
+    from worker.jobs import JobContext
+
+
+@dataclass(frozen=True)
+class JobType:
+    name: str
+    queue: str
+    params: type[BaseModel]
+    run: Callable[["JobContext", BaseModel], None]
+    stages: tuple[str, ...]
+    needs_scene: bool = True
+
+
+REGISTRY: dict[str, JobType] = {}
+
+
+def register(jt: JobType) -> JobType:
+    if jt.name in REGISTRY and REGISTRY[jt.name] is not jt:
+        raise ValueError(f"job type {jt.name!r} is already registered")
+    REGISTRY[jt.name] = jt
+    return jt
+
+
+def job_type(name: str) -> JobType | None:
+    """The registered job type ``name`` (importing the built-in job types first), or None."""
+    import worker.jobs  # noqa: F401  (registers the built-in types)
+
+    return REGISTRY.get(name)
