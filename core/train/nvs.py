@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import math
 import time
+from typing import Callable
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
@@ -18,7 +19,7 @@ import torch
 
 from core.bundle import SceneBundle
 from core.conventions import camera_ray_directions, project_points
-from core.errors import ConfigError
+from core.errors import ConfigError, FormatError
 from core.gaussians import Gaussians
 from core.raster import RasterSettings, rasterize_gaussians
 from core.scene_graph import RigidNode, SceneGraph, transform_gaussians
@@ -191,10 +192,17 @@ def evaluate(model: NVSModel, views: list[_View], settings: RasterSettings) -> d
 
 
 def train_nvs(bundle: SceneBundle, cfg: NVSConfig, out_dir: str | Path | None = None, *,
-              progress: bool = True, log_every: int = 50) -> dict:
+              progress: bool = True, log_every: int = 50, checkpoint_dir: str | Path | None = None,
+              checkpoint_every: int = 500, on_progress: Callable[[int, int, dict], None] | None = None) -> dict:
     """Train on the bundle's train split; evaluate on its test split. Returns a summary dict
     (held-out PSNR/SSIM, train PSNR, Gaussians, seconds) and writes renders, a checkpoint and
-    ``summary.json`` into ``out_dir`` when given."""
+    ``summary.json`` into ``out_dir`` when given.
+
+    ``checkpoint_dir``: the full training state (Gaussians, sky, optimiser moments, density
+    statistics, random state, loss history) is saved there every ``checkpoint_every`` steps, and a
+    run started with a directory that holds a state resumes from it: a crashed or killed run
+    continues where its last checkpoint left off. ``on_progress(it, iterations, record)`` is
+    called every ``log_every`` steps (an exception raised there stops the run, e.g. a cancel)."""
     from tqdm import tqdm
 
     from core.metrics import ssim
@@ -211,8 +219,13 @@ def train_nvs(bundle: SceneBundle, cfg: NVSConfig, out_dir: str | Path | None = 
         test = _views(bundle, "test", with_lidar=False)
         if not train:
             raise ConfigError("bundle: has no train frames")
-        bg, nodes = gaussians_from_lidar(bundle, cfg.init)
-        graph = SceneGraph.from_bundle_objects(bundle.manifest, bg, nodes)
+        ckpt = Path(checkpoint_dir) if checkpoint_dir is not None else None
+        state = _load_state(ckpt) if ckpt is not None else None
+        if state is not None:
+            graph = SceneGraph.load(ckpt / state["graph_file"])
+        else:
+            bg, nodes = gaussians_from_lidar(bundle, cfg.init)
+            graph = SceneGraph.from_bundle_objects(bundle.manifest, bg, nodes)
         model = NVSModel(graph, SkyDome(64, 128, _mean_sky_colour(train)))
         settings = RasterSettings(threads=cfg.threads)
         extent = scene_extent(torch.stack([v.cam_to_world[:3, 3] for v in train]))
@@ -220,7 +233,12 @@ def train_nvs(bundle: SceneBundle, cfg: NVSConfig, out_dir: str | Path | None = 
         dens = [DensityController(cfg.density, extent, g.num) for g in model.containers()]
         sky_opt = torch.optim.Adam(model.sky.parameters(), lr=cfg.sky_lr)
         history = []
-        bar = tqdm(range(1, cfg.iterations + 1), desc="train nvs", unit="it", disable=not progress)
+        start_it = 1
+        if state is not None:
+            start_it = _restore(state, model, opts, dens, sky_opt, rng) + 1
+            history = state["history"]
+        bar = tqdm(range(start_it, cfg.iterations + 1), desc="train nvs", unit="it", disable=not progress,
+                   initial=start_it - 1, total=cfg.iterations)
         for it in bar:
             v = train[int(rng.integers(len(train)))]
             for o in opts:
@@ -263,6 +281,10 @@ def train_nvs(bundle: SceneBundle, cfg: NVSConfig, out_dir: str | Path | None = 
                 history.append({"it": it, "loss": float(loss.detach()), "l1": float(l1.detach()), "gaussians": n,
                                 "s": round(time.time() - t0, 2)})
                 bar.set_postfix(loss=f"{float(loss.detach()):.4f}", n=n)
+                if on_progress is not None:
+                    on_progress(it, cfg.iterations, history[-1])
+            if ckpt is not None and (it % checkpoint_every == 0 or it == cfg.iterations):
+                _save_state(ckpt, it, model, opts, dens, sky_opt, rng, history)
         train_s = time.time() - t0
         ev_test = evaluate(model, test, settings) if test else {"psnr": float("nan"), "ssim": float("nan"), "renders": []}
         ev_train = evaluate(model, train[:: max(1, len(train) // 5)], settings)
@@ -292,6 +314,59 @@ def train_nvs(bundle: SceneBundle, cfg: NVSConfig, out_dir: str | Path | None = 
         return summary
     finally:
         torch.set_num_threads(old_threads)
+
+
+STATE_FILE = "train_state.pt"
+
+
+def _save_state(ckpt: Path, it: int, model: NVSModel, opts, dens, sky_opt, rng, history) -> None:
+    """Write the training state: the scene graph of this iteration first, then the state file
+    (atomically, last) naming that graph; older graphs are removed afterwards. A crash at any
+    point leaves a state file that names a complete graph."""
+    ckpt.mkdir(parents=True, exist_ok=True)
+    model.graph.save(ckpt / f"scene_graph.{it}.pt")
+    payload = {
+        "iteration": it,
+        "graph_file": f"scene_graph.{it}.pt",
+        "sky": model.sky.state_dict(),
+        "sky_opt": sky_opt.state_dict(),
+        "opt": [{"m": o.m, "v": o.v, "step": o.step_count} for o in opts],
+        "density": [{"grad": d.grad_accum, "count": d.count} for d in dens],
+        "rng": rng.bit_generator.state,
+        "torch_rng": torch.get_rng_state(),
+        "history": history,
+    }
+    tmp = ckpt / (STATE_FILE + ".tmp")
+    torch.save(payload, tmp)
+    tmp.replace(ckpt / STATE_FILE)
+    for old in ckpt.glob("scene_graph.*.pt"):
+        if old.name != payload["graph_file"]:
+            old.unlink(missing_ok=True)
+
+
+def _load_state(ckpt: Path) -> dict | None:
+    f = ckpt / STATE_FILE
+    if not f.is_file():
+        return None
+    try:
+        state = torch.load(f, map_location="cpu", weights_only=True)
+    except Exception as exc:  # noqa: BLE001 - a corrupt state is reported, never silently reset
+        raise FormatError(f"{f}: unreadable training state ({exc})") from exc
+    if not (ckpt / state["graph_file"]).is_file():
+        raise FormatError(f"{f}: its scene graph {state['graph_file']} is missing")
+    return state
+
+
+def _restore(state: dict, model: NVSModel, opts, dens, sky_opt, rng) -> int:
+    model.sky.load_state_dict(state["sky"])
+    sky_opt.load_state_dict(state["sky_opt"])
+    for o, st in zip(opts, state["opt"]):
+        o.m, o.v, o.step_count = st["m"], st["v"], st["step"]
+    for d, st in zip(dens, state["density"]):
+        d.grad_accum, d.count = st["grad"], st["count"]
+    rng.bit_generator.state = state["rng"]
+    torch.set_rng_state(state["torch_rng"])
+    return int(state["iteration"])
 
 
 def _cfg_dict(cfg: NVSConfig) -> dict:
