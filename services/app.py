@@ -434,6 +434,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         if jt is None:  # 409, not 501: the request is valid; this build cannot serve it (no 5xx for clients)
             raise _err(409, f"{type_name} is not available in this build: its pipeline stages have not landed "
                             "yet, so no job was queued")
+        why = jt.unavailable(params) if jt.unavailable is not None else None
+        if why:
+            raise _err(409, f"{why}; no job was queued")
         pj = params.model_dump(mode="json")
         fp = _fingerprint(type_name, scene_id, pj)
         jid = new_id()

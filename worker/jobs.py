@@ -29,10 +29,10 @@ from pathlib import Path
 
 from sqlalchemy import delete, select, update
 
-from api_schemas import OutputKind, RenderRequest
+from api_schemas import OutputKind, ReconstructRequest, RenderRequest
 from worker.db import Artifact, Database, Job, JobStage, Scene, get_database, utcnow
 from worker.registry import JobType, register
-from worker.settings import QUEUE_RENDER, Settings, get_settings
+from worker.settings import QUEUE_RENDER, QUEUE_TRAIN, Settings, get_settings
 from worker.storage import ArtifactStore, get_store
 
 log = logging.getLogger("brdf.jobs")
@@ -99,6 +99,15 @@ class JobContext:
             if stage_fraction is not None and self._p.stage:
                 self._p.stage_fraction[self._p.stage] = min(max(float(stage_fraction), 0.0), 1.0)
             self._p.dirty = True
+
+    def stage_metrics(self, metrics: dict) -> None:
+        """Replace the current stage's metrics (e.g. ``{"loss": [...]}``: lists are drawn as
+        curves on the dashboard)."""
+        if not self._p.stage:
+            return
+        with self.db.session() as s:
+            s.execute(update(JobStage).where(JobStage.job_id == self.job.id, JobStage.name == self._p.stage)
+                      .values(metrics=dict(metrics)))
 
     def add_artifact(self, local_path: Path, name: str) -> None:
         """Upload a finished output file; it is listed once the job is done."""
@@ -362,6 +371,69 @@ def run_render(ctx: JobContext, p: RenderRequest) -> None:
 
 
 register(JobType("render", QUEUE_RENDER, RenderRequest, run_render, stages=("fetch", "export", "upload")))
+
+
+#: Optimisation stages this build implements (the rest of the paper's chain lands with later work).
+RECONSTRUCT_STAGES_AVAILABLE = ("volume",)
+
+
+def reconstruct_unavailable(p: ReconstructRequest) -> str | None:
+    """Why this build cannot run ``p`` (stages or profile not available), or None."""
+    from core.train.nvs import NVS_PROFILES
+
+    missing = [st for st in p.stages if st not in RECONSTRUCT_STAGES_AVAILABLE]
+    if missing:
+        return (f"reconstruct stages {missing} are not available in this build (available: "
+                f"{list(RECONSTRUCT_STAGES_AVAILABLE)}); ask for stages {list(RECONSTRUCT_STAGES_AVAILABLE)}")
+    if p.profile not in NVS_PROFILES:
+        return f"profile {p.profile!r} is not available on this build's CPU workers (available: {sorted(NVS_PROFILES)})"
+    return None
+
+
+def run_reconstruct(ctx: JobContext, p: ReconstructRequest) -> None:
+    """The volume stage (LiDAR init, Gaussians fitted to the training frames, adaptive density
+    control), checkpointed under the data directory so a retried attempt resumes where the killed
+    one stopped. Outputs: the scene graph and sky, held-out renders, summary.json with PSNR/SSIM;
+    the stage's loss curve is recorded for the dashboard."""
+    from dataclasses import replace
+
+    from core.bundle import open_bundle
+    from core.train.nvs import NVS_PROFILES, train_nvs
+
+    ctx.stage("volume")
+    bundle = open_bundle(ctx.scene_dir())
+    cfg = NVS_PROFILES[p.profile]
+    if p.iterations_scale != 1.0:
+        s = p.iterations_scale
+        cfg = replace(cfg, iterations=max(1, round(cfg.iterations * s)), densify_from=round(cfg.densify_from * s),
+                      densify_until=round(cfg.densify_until * s), densify_every=max(1, round(cfg.densify_every * s)))
+    ckpt = ctx.settings.data_dir / "checkpoints" / ctx.job.id / "volume"
+    out = ctx.workdir / "out"
+    losses: list[float] = []
+
+    def report(it: int, total: int, rec: dict) -> None:
+        ctx.check_canceled()
+        losses.append(round(float(rec["loss"]), 5))
+        ctx.progress(0.95 * it / total, stage_fraction=it / total)
+        ctx.stage_metrics({"loss": losses, "gaussians": rec["gaussians"]})
+
+    summary = train_nvs(bundle, cfg, out, progress=False, log_every=max(1, cfg.iterations // 100),
+                        checkpoint_dir=ckpt, checkpoint_every=max(1, cfg.iterations // 10), on_progress=report)
+    ctx.stage_metrics({"loss": [round(h["loss"], 5) for h in summary["history"]], "test_psnr": summary["test_psnr"],
+                       "test_ssim": summary["test_ssim"], "gaussians": summary["gaussians"]})
+    files = sorted(f for f in out.rglob("*") if f.is_file())
+    previews = sorted((out / "renders").glob("*.png"))
+    for i, f in enumerate(files):
+        ctx.check_canceled()
+        ctx.add_artifact(f, f.relative_to(out).as_posix())
+        ctx.progress(0.95 + 0.05 * (i + 1) / len(files))
+    if previews:
+        ctx.add_artifact(previews[len(previews) // 2], "preview.png")
+    shutil.rmtree(ckpt, ignore_errors=True)  # the attempt succeeded: its resume state is not needed
+
+
+register(JobType("reconstruct", QUEUE_TRAIN, ReconstructRequest, run_reconstruct, stages=("volume",),
+                 unavailable=reconstruct_unavailable))
 
 
 def format_ts(t: datetime | None) -> str | None:

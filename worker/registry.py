@@ -29,6 +29,9 @@ class JobType:
     run: Callable[["JobContext", BaseModel], None]
     stages: tuple[str, ...]
     needs_scene: bool = True
+    #: Returns why this build cannot serve a valid request (e.g. it asks for a stage that has not
+    #: landed), or None; the gateway then answers 409 and queues nothing.
+    unavailable: Callable[[BaseModel], str | None] | None = None
 
 
 REGISTRY: dict[str, JobType] = {}

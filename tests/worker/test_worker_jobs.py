@@ -11,7 +11,7 @@ from datetime import timedelta
 
 import pytest
 import redis
-from sqlalchemy import update
+from sqlalchemy import select, update
 
 from svc_support import make_bundle, zip_bundle
 from worker.db import Job, utcnow
@@ -258,3 +258,31 @@ def test_service_on_postgresql(settings, scene_zip):
             names = [a["name"] for a in c.get(f"/jobs/{jid}/artifacts").json()["items"]]
             assert "preview.png" in names and "train.mp4" in names and not any(n.endswith(".exr") for n in names)
             assert c.app.state.db.engine.dialect.name == "postgresql"
+
+
+def test_reconstruct_volume_stage_end_to_end(client, app, settings, tiny_zip):
+    """The reconstruct job runs the real volume stage: Gaussians fitted to the frames, held-out
+    PSNR in summary.json, renders and the scene graph as artifacts, a loss curve on the stage."""
+    import json as _json
+
+    sid = upload(client, tiny_zip)
+    r = client.post(f"/scenes/{sid}/reconstruct", json={"profile": "tiny", "stages": ["volume"],
+                                                          "iterations_scale": 0.5})
+    assert r.status_code == 202, r.text
+    jid = r.json()["id"]
+    work(settings, queues=("train",))
+    job = client.get(f"/jobs/{jid}").json()
+    assert job["state"] == "done", job
+    (stage,) = job["stages"]
+    assert stage["name"] == "volume" and stage["state"] == "done"
+    arts = {a["name"]: a for a in client.get(f"/jobs/{jid}/artifacts").json()["items"]}
+    assert {"summary.json", "preview.png", "checkpoint/scene_graph.pt", "test_renders.mp4"} <= set(arts), sorted(arts)
+    summary = _json.loads(client.get(arts["summary.json"]["url"]).content)
+    assert summary["iterations"] == 30 and 5 < summary["test_psnr"] < 60
+    from worker.db import JobStage
+
+    with app.state.db.session() as s:
+        st = s.scalars(select(JobStage).where(JobStage.job_id == jid)).one()
+        assert len(st.metrics["loss"]) == 30 and st.metrics["test_psnr"] == summary["test_psnr"]
+    # the resume state of a finished job is cleaned up
+    assert not (settings.data_dir / "checkpoints" / jid / "volume").exists()
