@@ -33,9 +33,13 @@ from core.raster.splat import quat_to_rotmat, rasterize, safe_normalize_quat
 
 def rasterize_gaussians(gaussians, cam_to_world, fx, fy, cx, cy, width, height, background=None,
                         settings=None):
-    """:func:`rasterize` for a :class:`core.gaussians.Gaussians` (its activated attributes);
-    gradients flow to the Gaussians' unconstrained parameters."""
-    a = gaussians.activated()
+    """:func:`rasterize` for a :class:`core.gaussians.Gaussians` (its activated attributes, the
+    colour as seen from this camera's centre); gradients flow to the Gaussians' unconstrained
+    parameters."""
+    import torch
+
+    c2w = cam_to_world if isinstance(cam_to_world, torch.Tensor) else torch.as_tensor(cam_to_world)
+    a = gaussians.activated(cam_center=c2w[:3, 3].detach())
     return rasterize(a["means"], a["quats"], a["scales"], a["opacities"], a["colors"], a["normals"],
                      a["albedo"], a["roughness"], a["metallic"], cam_to_world, fx, fy, cx, cy,
                      width, height, background=background, settings=settings)
