@@ -294,7 +294,7 @@ def train_nvs(bundle: SceneBundle, cfg: NVSConfig, out_dir: str | Path | None = 
             "gaussians": sum(g.num for g in model.containers()),
             "test_psnr": round(ev_test["psnr"], 3), "test_ssim": round(ev_test["ssim"], 4),
             "train_psnr": round(ev_train["psnr"], 3), "train_ssim": round(ev_train["ssim"], 4),
-            "threads": cfg.threads, "history": history,
+            "threads": cfg.threads, "resumed_from_iteration": start_it - 1, "history": history,
         }
         if out_dir is not None:
             from core.io.images import write_png

@@ -129,3 +129,35 @@ def test_cancel_running_job_in_forking_worker(settings, tmp_path, long_zip, scen
     assert j["state"] == "canceled" and j["progress"] < 1.0
     assert c.get(f"/jobs/{jid}/artifacts").json()["items"] == []
     assert took < 30, f"the canceled job kept the worker busy for {took:.0f} s"
+
+
+def test_killed_reconstruct_resumes_from_its_checkpoint(settings, tmp_path, tiny_scene, procs):
+    """kill -9 of a worker in the middle of the volume stage: the retried attempt continues from
+    the stage checkpoint instead of starting over, and finishes."""
+    from pathlib import Path
+
+    import torch
+
+    gw, base = start_gateway(settings, tmp_path / "gateway.log")
+    procs.append(gw)
+    w1 = start_worker(settings, tmp_path / "worker1.log")
+    procs.append(w1)
+    c = api(base)
+    sid = upload(c, zip_bundle(tiny_scene, tmp_path / "tiny.zip"))
+    jid = c.post(f"/scenes/{sid}/reconstruct", json={"profile": "tiny", "stages": ["volume"],
+                                                      "iterations_scale": 10}).json()["id"]
+    state = Path(settings.data_dir) / "checkpoints" / jid / "volume" / "train_state.pt"
+    wait_for(lambda: state.is_file() or None, 180, f"a checkpoint of the volume stage\n{w1.tail()}")
+    saved = torch.load(state, weights_only=True)["iteration"]
+    assert job(c, jid)["state"] == "running"
+    w1.kill9()
+    w2 = start_worker(settings, tmp_path / "worker2.log")
+    procs.append(w2)
+    done = wait_for(lambda: (lambda j: j if j["state"] in ("done", "failed") else None)(job(c, jid)), 240,
+                    f"the retried reconstruct to finish\n--- worker2:\n{w2.tail()}")
+    assert done["state"] == "done", done
+    assert done["attempts"] == 2
+    arts = {a["name"]: a for a in c.get(f"/jobs/{jid}/artifacts").json()["items"]}
+    summary = c.get(arts["summary.json"]["url"]).json()
+    assert summary["iterations"] == 600
+    assert summary["resumed_from_iteration"] >= saved > 0, summary["resumed_from_iteration"]
