@@ -1,0 +1,166 @@
+"""Benchmark of the generative pass (issue 5): speed of the forward denoiser, OIDN yardstick,
+lighting prior, and (when trained models exist) held-out quality.
+
+    python benchmarks/bench_generative.py --quick            # seconds; random weights, default scene
+    python benchmarks/bench_generative.py --scenes scenes/h7 scenes/h8 --out benchmarks/results/generative.json
+
+What it measures
+    forward.s_per_frame    wall seconds per 320x213 frame of SDEdit (8 Euler steps, onnxruntime,
+                           ``--threads`` threads) with the forward model: the committed
+                           ``models/forward_denoiser.onnx`` when present, else a freshly exported
+                           random-weight network of the default width (speed does not depend on
+                           the weights; quality fields are then null).
+    forward.psnr_* / flip_* / flicker_*   on held-out scenes (``--scenes``) with a trained model and
+                           PBR inputs under ``<scene>/derived/pbr`` (or ``--degrade`` for the
+                           synthetic Monte-Carlo degradation, reported as such).
+    oidn                   PSNR of a Monte-Carlo-degraded frame of the default scene before/after OIDN.
+    lighting               sun direction error (deg) and log-space error of the physically fitted
+                           prior on each scene (ground-truth geometry/albedo stand in for the
+                           reconstruction).
+Every result records the machine (cpu count, load average) and the mode.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+
+def forward_speed(threads: int, runs: int, model_path: Path | None) -> dict:
+    import torch
+
+    from core.gen.edm import OnnxDenoiser, SamplerSettings, sdedit
+    from core.gen.nets import build_model, example_inputs, export_onnx
+    from core.gen.runtime import load_model
+
+    trained = model_path is not None and model_path.is_file()
+    if not trained:
+        tmp = Path(tempfile.mkdtemp()) / "forward_random.onnx"
+        torch.manual_seed(0)
+        m = build_model("forward_denoiser", frames=1)
+        with torch.no_grad():
+            for p in m.parameters():
+                p.add_(torch.randn_like(p) * 0.02)
+        model_path = export_onnx(m, tmp)
+    sess = load_model(model_path, kind="forward_denoiser", threads=threads)
+    ex = example_inputs("forward_denoiser", 1, 1, 213, 320)
+    x = ex.pop("x_t")[0]
+    ex.pop("sigma")
+    cond = {k: v[0] for k, v in ex.items()}
+    st = SamplerSettings(steps=8, solver="euler")
+    sdedit(OnnxDenoiser(sess), x, cond, SamplerSettings(steps=1))  # warm-up
+    times = []
+    for _ in range(runs):
+        t = time.perf_counter()
+        sdedit(OnnxDenoiser(sess), x, cond, st)
+        times.append(time.perf_counter() - t)
+    return {"s_per_frame": float(np.median(times)), "runs": times, "steps": 8, "solver": "euler",
+            "resolution": [320, 213], "threads": threads, "weights": "trained" if trained else "random",
+            "model": str(model_path)}
+
+
+def oidn_gain(threads: int) -> dict:
+    from core.bundle import open_bundle
+    from core.gen.data import degrade_mc
+    from core.gen.denoise import DenoiseSettings, denoise
+    from core.tonemap import hdr_to_ldr
+
+    b = open_bundle(REPO / "data" / "scenes" / "default", validate=False)
+    fr = b.frames("test")[0]
+    gt = b.load_ground_truth(fr)
+    noisy = degrade_mc(gt["rgb"], 4, np.random.default_rng(0))
+    clean = hdr_to_ldr(gt["rgb"])
+    psnr = lambda a: float(-10 * np.log10(np.mean((a.astype(np.float64) - clean) ** 2)))  # noqa: E731
+    t = time.perf_counter()
+    out = denoise(noisy, gt["albedo"], gt["normal"], backend="oidn", hdr=True, settings=DenoiseSettings(threads=threads))
+    dt = time.perf_counter() - t
+    return {"frame": fr.id, "noise": "degrade_mc spp=4", "psnr_noisy": psnr(hdr_to_ldr(noisy)),
+            "psnr_oidn": psnr(hdr_to_ldr(out.frames[0])), "s_per_frame": dt}
+
+
+def lighting(scenes: list[Path]) -> dict:
+    from core.bundle import open_bundle
+    from core.gen.lighting import brightest_direction, envmap_log_error, estimate_from_bundle, sun_direction_error_deg
+
+    out = {}
+    for sc in scenes:
+        b = open_bundle(sc, validate=False)
+        gt = b.load_envmap()
+        t = time.perf_counter()
+        est = estimate_from_bundle(sc, "train")
+        out[str(sc)] = {"envmap": b.manifest.ground_truth.envmap_name,
+                        "rotation_deg": b.manifest.ground_truth.envmap_rotation_deg,
+                        "sun_dir_err_deg": sun_direction_error_deg(est.sun_dir, brightest_direction(gt)),
+                        "sun_source": est.sun_source, **envmap_log_error(est.envmap, gt),
+                        "seconds": time.perf_counter() - t}
+    errs = [v["sun_dir_err_deg"] for v in out.values()]
+    return {"per_scene": out, "sun_dir_err_deg": float(np.mean(errs)),
+            "log_err": float(np.mean([v["log_l1"] for v in out.values()]))}
+
+
+def quality(scenes: list[Path], models: Path, threads: int, degrade: bool) -> dict:
+    from core.gen.data import DataSettings
+    from core.gen.train import evaluate_model
+
+    data = DataSettings(forward_source="degrade" if degrade else "pbr")
+    res = {}
+    fwd, inv = models / "forward_denoiser.onnx", models / "inverse_gbuffer.onnx"
+    if fwd.is_file():
+        res["forward"] = evaluate_model("forward_denoiser", fwd, scenes, data, threads=threads)
+        res["forward"]["input"] = data.forward_source
+    if inv.is_file():
+        res["inverse"] = evaluate_model("inverse_gbuffer", inv, scenes, data, threads=threads)
+    return res
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="1 speed run, default scene only")
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--runs", type=int, default=5)
+    ap.add_argument("--scenes", nargs="*", type=Path, default=[])
+    ap.add_argument("--models", type=Path, default=REPO / "models")
+    ap.add_argument("--degrade", action="store_true", help="forward inputs: synthetic MC degradation")
+    ap.add_argument("--out", type=Path, default=None)
+    a = ap.parse_args(argv)
+    runs = 1 if a.quick else a.runs
+    scenes = [REPO / "data" / "scenes" / "default"] + list(a.scenes)
+    result = {"mode": "quick" if a.quick else "full", "machine": {"cpus": os.cpu_count(),
+              "loadavg": list(os.getloadavg())}}
+    fs = forward_speed(a.threads, runs, a.models / "forward_denoiser.onnx")
+    result["forward"] = {"s_per_frame": fs["s_per_frame"], "speed": fs, "psnr_pbr": None, "psnr_diffusion": None,
+                         "psnr_oidn": None, "flip_pbr": None, "flip_diffusion": None, "flip_oidn": None,
+                         "flicker_pbr": None, "flicker_diffusion": None}
+    result["oidn"] = oidn_gain(a.threads)
+    result["lighting"] = lighting(scenes)
+    if not a.quick and a.scenes:
+        q = quality(list(a.scenes), a.models, a.threads, a.degrade)
+        if "forward" in q:
+            f = q["forward"]
+            result["forward"].update({"psnr_pbr": f.get("psnr_input"), "psnr_diffusion": f.get("psnr_model"),
+                                      "flicker_pbr": f.get("flicker_input"), "flicker_diffusion": f.get("flicker_model"),
+                                      "input": f["input"]})
+        if "inverse" in q:
+            result["inverse"] = q["inverse"]
+    out = a.out or (Path(tempfile.gettempdir()) / "generative_quick.json" if a.quick
+                    else REPO / "benchmarks" / "results" / "generative.json")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(result, indent=2))
+    print(json.dumps({"forward_s_per_frame": result["forward"]["s_per_frame"],
+                      "oidn_psnr": [result["oidn"]["psnr_noisy"], result["oidn"]["psnr_oidn"]],
+                      "lighting_sun_err_deg": result["lighting"]["sun_dir_err_deg"], "out": str(out)}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

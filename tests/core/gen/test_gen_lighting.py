@@ -1,0 +1,75 @@
+"""Lighting prior: exact sun composition, the shading fit on model-consistent data, the default
+scene end to end (measured error recorded, regression bound), bad input."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from core.conventions import envmap_solid_angles
+from core.errors import NumericalError, ShapeError
+from core.gen import lighting as L
+
+REPO = Path(__file__).resolve().parents[3]
+SCENE = REPO / "data" / "scenes" / "default"
+
+
+def test_compose_envmap_sun_irradiance_is_exact():
+    sun = L._sph(math.radians(40.0), math.radians(30.0))
+    coeffs = np.array([[0.0, -0.5, 0.0]] * 3)
+    e_sun = np.array([5.0, 4.0, 3.0])
+    no_sun = L.compose_envmap(coeffs, sun, np.zeros(3), np.ones(3) * 0.1, 128)
+    env = L.compose_envmap(coeffs, sun, e_sun, np.ones(3) * 0.1, 128)
+    sa = envmap_solid_angles(128, 256)[:, None, None]
+    got = ((env - no_sun) * sa).sum((0, 1))
+    assert np.allclose(got, e_sun, rtol=1e-5)
+    assert L.sun_direction_error_deg(L.brightest_direction(env), sun) < 2.0
+    assert L.envmap_log_error(env, env)["log_l1"] == 0.0
+
+
+def test_shading_fit_recovers_sun_on_lambertian_samples():
+    """Samples that follow the model exactly (plus 3% noise): the search must find the sun."""
+    rng = np.random.default_rng(1)
+    n = rng.normal(size=(3000, 3))
+    n[:, 2] = np.abs(n[:, 2]) * 0.5
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    sun = L._sph(math.radians(-126.0), math.radians(47.6))
+    shade = 0.2 + 0.3 * (1 + n[:, 2]) / 2 + 1.5 * np.maximum(n @ sun, 0)
+    shade *= np.exp(rng.normal(0, 0.03, len(shade)))
+    found, res, diag = L._search_sun(n, shade, L.LightingSettings())
+    assert L.sun_direction_error_deg(found, sun) < 3.0
+    assert diag["shading_contrast"] > 0.2
+
+
+def test_default_scene_estimate():
+    """End to end on the bundled scene (city.exr: hazy, the sun carries ~20% of the light). With
+    the scene's albedo/normals/depth standing in for the reconstruction the measured sun error is
+    20 degrees (the issue's 10-degree target is NOT met on this map; see the module docstring)."""
+    est = L.estimate_from_bundle(SCENE, "train")
+    from core.bundle import open_bundle
+
+    gt = open_bundle(SCENE, validate=False).load_envmap()
+    err = L.sun_direction_error_deg(est.sun_dir, L.brightest_direction(gt))
+    assert est.envmap.shape == (512, 1024, 3) and np.isfinite(est.envmap).all() and est.envmap.min() > 0
+    assert est.sun_source in ("shading", "sky")
+    assert err < 30.0, err  # regression bound around the measured 20.2 degrees
+    le = L.envmap_log_error(est.envmap, gt)
+    assert le["log_l1"] < 0.35  # measured 0.24
+    assert np.all(est.sun_irradiance > 0)
+
+
+def test_bad_inputs():
+    t, h, w = 2, 8, 12
+    frames = np.full((t, h, w, 3), 0.5, np.float32)
+    poses = np.stack([np.eye(4)] * t)
+    sky = np.zeros((t, h, w), bool)
+    depth = np.ones((t, h, w), np.float32)
+    normals = np.zeros((t, h, w, 3), np.float32)
+    with pytest.raises(ShapeError, match="sky_masks"):
+        L.estimate_lighting(frames, poses, (10, 10, 6, 4), sky[:, :4], depth, normals)
+    frames[0, 0, 0, 0] = np.nan
+    with pytest.raises(NumericalError, match="frames"):
+        L.estimate_lighting(frames, poses, (10, 10, 6, 4), sky, depth, normals)
