@@ -9,6 +9,10 @@ Modules
     :mod:`core.pbr.lights`      :class:`PointLight`, :class:`SpotLight`, :func:`lights_to_world`,
                                 :func:`direct_lighting`
     :mod:`core.pbr.visibility`  :class:`GaussianTracer` (C++ BVH kernel), :func:`visibility_reference`
+    :mod:`core.pbr.integrator`  the fused C++ integrator (:func:`integrate`, :class:`VisibilityCache`)
+    :mod:`core.pbr.render`      the PBR pass (Eq. 3): :class:`PBRSettings`, :func:`render_pbr`,
+                                :class:`ClipRenderer`, :func:`write_frame_exr`, :func:`write_clip_mp4`
+    :mod:`core.pbr.oracle`      Gaussians placed on mesh surfaces (agreement with Mitsuba)
 
 Directions ``wi`` / ``wo`` point away from the surface; world frame z up, metres; roughness R
 and GGX ``alpha = R^2`` are distinct; angles are degrees in the API and radians inside.
@@ -19,9 +23,12 @@ from core.pbr.envmap import EnvironmentMap
 from core.pbr.lights import LightSet, PointLight, SpotLight, direct_lighting, lights_to_world
 from core.pbr.mis import estimate_reflected
 from core.pbr.visibility import GaussianTracer, TraceSettings, visibility_reference
+from core.pbr.render import (Camera, ClipRenderer, PBRResult, PBRSettings, render_pbr, sample_pixels,  # noqa: E402
+                             write_clip_mp4, write_frame_exr)
 
 __all__ = [
     "EnvironmentMap", "cook_torrance", "face_forward", "sample_brdf", "pdf_brdf", "estimate_reflected",
     "PointLight", "SpotLight", "LightSet", "lights_to_world", "direct_lighting", "GaussianTracer",
-    "TraceSettings", "visibility_reference",
+    "TraceSettings", "visibility_reference", "Camera", "ClipRenderer", "PBRResult", "PBRSettings", "render_pbr",
+    "sample_pixels", "write_clip_mp4", "write_frame_exr",
 ]

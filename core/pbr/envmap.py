@@ -15,7 +15,10 @@ Rotation and exposure
 
 Sampling
     A 2D piecewise-constant distribution over pixels (marginal over rows, conditional over
-    columns) with pixel weight ``luminance * Omega_row``, where ``Omega_row`` is the exact solid
+    columns) with pixel weight ``luminance * Omega_row`` (by default the luminance is the maximum
+    over the pixel's 3x3 neighbourhood, which bounds the bilinearly interpolated radiance inside
+    the pixel: without it a dim pixel next to a 3.5e4 sun returns half the sun's radiance with a
+    tiny pdf, a firefly; ``sampling_filter="none"`` uses the pixel's own luminance), where ``Omega_row`` is the exact solid
     angle of a pixel of that row (:func:`core.conventions.envmap_solid_angles`, which is
     ``2 pi / W * (cos theta_0 - cos theta_1)``, the integral of ``sin theta`` over the row).
     Inside the chosen pixel the direction is uniform in *solid angle* (uniform in ``cos theta``
@@ -130,6 +133,9 @@ class EnvironmentMap:
         log_space: store the parameter as log radiance (see module docstring).
         requires_grad: make :attr:`param` a leaf that requires grad (for the PBR stage).
         uniform_fraction: in [0, 1), the weight of a uniform-sphere density in the sampler.
+        sampling_filter: ``"max3x3"`` (default) samples pixels by the maximum luminance of their
+            3x3 neighbourhood, a bound of the bilinear radiance inside the pixel (no fireflies
+            next to a sun); ``"none"`` by the pixel's own luminance.
         dtype: floating dtype of the map and of every returned tensor.
 
     Raises:
@@ -141,7 +147,7 @@ class EnvironmentMap:
     def __init__(self, rgb, *, rotation_deg: float = 0.0, exposure: float = 1.0,
                  resample_to: tuple[int, int] | None = None, log_space: bool = False,
                  requires_grad: bool = False, uniform_fraction: float = 0.0,
-                 dtype: torch.dtype = torch.float32):
+                 dtype: torch.dtype = torch.float32, sampling_filter: str = "max3x3"):
         if dtype not in (torch.float32, torch.float64):
             raise ConfigError(f"dtype: must be torch.float32 or torch.float64, got {dtype}")
         self.dtype = dtype
@@ -156,6 +162,9 @@ class EnvironmentMap:
         self.param = p.requires_grad_(bool(requires_grad))
         self.rotation_deg = rotation_deg
         self.exposure = exposure
+        if sampling_filter not in ("max3x3", "none"):
+            raise ConfigError(f"sampling_filter: must be 'max3x3' or 'none', got {sampling_filter!r}")
+        self.sampling_filter = sampling_filter
         uf = float(uniform_fraction) if isinstance(uniform_fraction, (int, float)) and not isinstance(uniform_fraction, bool) else None
         if uf is None or not math.isfinite(uf) or not 0.0 <= uf < 1.0:
             raise ConfigError(f"uniform_fraction: must be a number in [0, 1), got {uniform_fraction!r}")
@@ -265,6 +274,13 @@ class EnvironmentMap:
         h, w = self.height, self.width
         with torch.no_grad():
             lum = luminance(self.radiance_map().detach().to(torch.float64)).clamp_min(0.0)
+            if self.sampling_filter == "max3x3":
+                # the bilinear radiance inside a pixel is bounded by the max over its 3x3
+                # neighbourhood (azimuth wraps, rows clamp): sampling by that bound keeps L / pdf
+                # bounded next to a sun, where a piecewise-constant pdf gives fireflies
+                x = torch.cat([lum[:, -1:], lum, lum[:, :1]], 1)
+                x = torch.cat([x[:1], x, x[-1:]], 0)[None, None]
+                lum = F.max_pool2d(x, 3, stride=1)[0, 0]
         omega = torch.from_numpy(conventions.envmap_solid_angles(h, w))  # [H] sr, float64
         weight = lum * omega[:, None]
         total = float(weight.sum())

@@ -197,6 +197,23 @@ class GaussianTracer:
             rec[:k, 12] = prep["opacity"][p].numpy()
             rec[:k, 13] = prep["r2max"][p].numpy()
         self._records = rec
+        # the fused integrator's copy: the same SAH build collapsed to an 8-wide BVH, and the
+        # records in its leaf order as SoA arrays (16-wide AVX-512 leaf test)
+        perm8 = np.zeros(max(k, 1), np.int32)
+        nodes8 = np.zeros((k + 1) * _native.NODE8_BYTES, np.uint8)
+        depth8 = ctypes.c_int32(0)
+        nn8 = lib.pi_build8(lo.ctypes.data, hi.ctypes.data, k, self.settings.leaf_size, perm8.ctypes.data,
+                            nodes8.ctypes.data, ctypes.byref(depth8))
+        self._nodes8 = nodes8[: max(int(nn8), 1) * _native.NODE8_BYTES].copy()
+        self.num_nodes8 = int(nn8)
+        soa = np.zeros((_native.SOA_ARRAYS, max(k, 1) + _native.SOA_PAD), np.float32)
+        if k:
+            p8 = torch.from_numpy(perm8[:k].astype(np.int64))
+            soa[0:3, :k] = prep["mu"][p8].numpy().T
+            soa[3:12, :k] = prep["M"][p8].reshape(k, 9).numpy().T
+            soa[12, :k] = prep["opacity"][p8].numpy()
+            soa[13, :k] = prep["r2max"][p8].numpy()
+        self._soa = soa
         self.last_stats: dict[str, int] = {}
 
     @classmethod
@@ -205,6 +222,12 @@ class GaussianTracer:
         with torch.no_grad():
             return cls(gaussians.means, gaussians.rotations(), gaussians.scales(), gaussians.opacities(),
                        settings)
+
+    def native_handle(self) -> tuple[int, int, int, int]:
+        """``(nodes pointer, node count, SoA pointer, SoA row length)`` for the fused integrator
+        (valid while this tracer is alive)."""
+        return (self._nodes8.ctypes.data, self.num_nodes8 if self.num_kept else 0, self._soa.ctypes.data,
+                int(self._soa.shape[1]))
 
     def __call__(self, origins: torch.Tensor, dirs: torch.Tensor, t_max=None) -> torch.Tensor:
         """Visibility ``[M]`` in [0, 1] (detached, dtype of ``origins``) of rays ``origins`` and

@@ -1,0 +1,490 @@
+"""The physically based rendering pass (paper Eq. 3) on rasterized G-buffers.
+
+Per pixel (world frame, metres; OpenCV camera, :mod:`core.conventions`):
+
+    O          composited opacity;  z = D / O  (D: composited camera z-depth)
+    x          = c + d z / (d . f)     surface point (c camera centre, d unit ray, f forward axis)
+    n          = N / |N|, flipped toward the viewer when n . wo < 0   (wo = -d)
+    A, R, M    = composited albedo, roughness, metallic divided by O (expected values given a hit)
+    L_r        = Monte Carlo estimate of  integral E(wi) V(x, wi) f(wi, wo) (n . wi)+ dwi
+                 + sum over local lights of E_l V(x, wl) f(wl, wo) (n . wl)+   (supplement)
+    C_pbr      = (1 - O) E(d) + O L_r
+    C_ldr      = clip(exposure C_pbr, 0, 1)^(1 / gamma)        (gamma = 2.2)
+
+``E(d)`` is the map's radiance along the camera ray (the paper's ``E(w_o)``). ``L_r`` is weighted
+by ``O`` because the G-buffers are accumulated sums: a pixel half covered by a surface blends half
+surface, half sky; for opaque surfaces (``O = 1``) this is the paper's formula exactly. A zero
+normal (nothing composited) reflects nothing.
+
+Backends (:attr:`PBRSettings.backend`)
+    ``"native"``: the fused C++ integrator (:mod:`core.pbr.integrator`): fast, not
+    differentiable, with the skips (sky, light culling, visibility reuse, adaptive sampling).
+    ``"torch"``: :func:`core.pbr.mis.estimate_reflected` + :func:`core.pbr.lights.direct_lighting`
+    with the BVH shadow rays: differentiable with respect to the environment map (and the
+    G-buffers); the training path, e.g. with ``pixels=`` a random subset of 2048 non-sky pixels
+    (:func:`sample_pixels`). Both estimate the same expectation.
+
+Outputs: :class:`PBRResult` (HDR beauty, LDR, L_r, G-buffers, samples per pixel, timings,
+counters); :func:`write_frame_exr` writes HDR beauty and every G-buffer layer into one
+multi-layer EXR: the beauty (``R, G, B``) and ``Lr`` are written as **float32** (a 1e6 sun stays
+finite: float32 holds up to 3.4e38), the G-buffers as half (their values are small; the EXR
+writer clamps half values at 65504, so nothing is ever Inf). :func:`write_clip_mp4` writes LDR
+frames as H.264.
+
+Clips: :class:`ClipRenderer` renders frames of a :class:`core.scene_graph.SceneGraph` (or a
+fixed set of Gaussians) along a camera path: the shadow-ray BVH of the background and static
+nodes is built once (only moving nodes get a per-frame BVH; visibility is the product of both),
+the environment tables once, and with ``reuse_visibility`` a :class:`VisibilityCache` carries
+environment visibility across frames.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from core.errors import ConfigError, ShapeError
+from core.pbr.envmap import EnvironmentMap, luminance
+from core.pbr.visibility import GaussianTracer, TraceSettings
+
+SAMPLINGS = ("env", "brdf", "mis")
+BACKENDS = ("native", "torch")
+
+
+@dataclass(frozen=True)
+class PBRSettings:
+    """How the PBR pass samples, skips work and tone-maps. Lengths in metres."""
+
+    rays_per_pixel: int = 64
+    """Environment + BRDF samples (each with its shadow ray) per shaded pixel (the paper's N_r)."""
+    sampling: str = "mis"
+    """``"env"`` (the paper: environment importance sampling only), ``"brdf"`` or ``"mis"`` (half
+    environment, half BRDF samples, power heuristic)."""
+    backend: str = "native"
+    """``"native"`` (fused C++ kernel, not differentiable) or ``"torch"`` (differentiable)."""
+    exposure: float = 1.0
+    """LDR exposure: ``C_ldr = clip(exposure * C_pbr, 0, 1)^(1/gamma)``."""
+    gamma: float = 2.2
+    """LDR gamma (the paper's 2.2)."""
+    specular: float = 1.0
+    """Scale of the BRDF's microfacet term: 1 = the paper; 0 = pure Lambert (validation against
+    Lambertian ground truth)."""
+    normal_offset: float = 0.02
+    """Shadow rays start this far along the normal (metres) so a surface does not shadow itself."""
+    skip_sky: bool = True
+    """Shade only pixels with opacity >= ``sky_opacity`` (the rest show the environment)."""
+    sky_opacity: float = 1.0 / 255.0
+    """Opacity below which a pixel counts as sky (its L_r weight O is below this)."""
+    cull_lights: bool = True
+    """Evaluate a light at a pixel only inside its range and cone and above the horizon (exact)."""
+    adaptive: bool = False
+    """Adaptive sampling (native): stop a pixel once its LDR standard error is below ``adaptive_tol``."""
+    adaptive_tol: float = 0.01
+    """LDR standard error (0..1 units) at which a pixel stops sampling."""
+    adaptive_batch: int = 8
+    """Samples per batch of the adaptive criterion."""
+    adaptive_min_batches: int = 4
+    """Batches every pixel takes before it may stop (few batches make the variance estimate
+    unreliable: a pixel that has not yet drawn the sun stops dark)."""
+    reuse_visibility: bool = False
+    """Native: take environment samples from a fixed pool and cache their visibility per
+    world-space surface cell across frames (see :mod:`core.pbr.integrator`)."""
+    cache_cell_px: float = 2.0
+    """Cell size of the visibility cache in pixel footprints (rounded up to a power of 2 x 1 mm):
+    shadows through cached directions are resolved to a cell (2-4 pixels at 2)."""
+    cache_pool: int = 4096
+    """Environment directions in the pool of the visibility cache."""
+    seed: int = 0
+    """Random seed (frames of a clip add their index)."""
+    threads: int = 0
+    """Kernel threads; 0 = every core this process may use."""
+    trace: TraceSettings = field(default_factory=lambda: TraceSettings(leaf_size=16))
+    """Shadow-ray settings (offset along the ray, early stop, BVH leaf size)."""
+
+    def __post_init__(self) -> None:
+        def is_int(v, lo, hi):
+            return not isinstance(v, bool) and isinstance(v, int) and lo <= v <= hi
+
+        def is_num(v, lo, hi, lo_open=False):
+            return (not isinstance(v, bool) and isinstance(v, (int, float)) and math.isfinite(v) and lo <= v <= hi
+                    and not (lo_open and v == lo))
+
+        checks = {
+            "rays_per_pixel": is_int(self.rays_per_pixel, 1, 1 << 20),
+            "sampling": self.sampling in SAMPLINGS,
+            "backend": self.backend in BACKENDS,
+            "exposure": is_num(self.exposure, 0.0, 1e12, True),
+            "gamma": is_num(self.gamma, 0.0, 100.0, True),
+            "specular": is_num(self.specular, 0.0, 1.0),
+            "normal_offset": is_num(self.normal_offset, 0.0, 10.0),
+            "sky_opacity": is_num(self.sky_opacity, 0.0, 1.0),
+            "adaptive_tol": is_num(self.adaptive_tol, 0.0, 1.0, True),
+            "adaptive_batch": is_int(self.adaptive_batch, 1, 1 << 20),
+            "adaptive_min_batches": is_int(self.adaptive_min_batches, 2, 1 << 20),
+            "cache_cell_px": is_num(self.cache_cell_px, 0.0, 64.0, True),
+            "cache_pool": is_int(self.cache_pool, 16, 1 << 22),
+            "seed": is_int(self.seed, 0, 2 ** 52),
+            "threads": is_int(self.threads, 0, 4096),
+        }
+        for name, ok in checks.items():
+            if not ok:
+                raise ConfigError(f"{name}: invalid value {getattr(self, name)!r}")
+        for name in ("skip_sky", "cull_lights", "adaptive", "reuse_visibility"):
+            if not isinstance(getattr(self, name), bool):
+                raise ConfigError(f"{name}: expected a bool, got {getattr(self, name)!r}")
+        if not isinstance(self.trace, TraceSettings):
+            raise ConfigError(f"trace: expected TraceSettings, got {type(self.trace).__name__}")
+
+    @property
+    def split(self) -> tuple[int, int]:
+        """(environment samples, BRDF samples) per pixel."""
+        n = self.rays_per_pixel
+        if self.sampling == "env":
+            return n, 0
+        if self.sampling == "brdf":
+            return 0, n
+        return (n + 1) // 2, n // 2
+
+
+@dataclass(frozen=True)
+class Camera:
+    """OpenCV pinhole camera: ``cam_to_world`` [4, 4] (rigid), intrinsics in pixels, size."""
+
+    cam_to_world: np.ndarray
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+
+    @classmethod
+    def of(cls, cam) -> "Camera":
+        """Any object with the same attributes (e.g. ``core.synth.mitsuba_backend.PinholeCamera``)."""
+        if isinstance(cam, Camera):
+            return cam
+        return cls(np.asarray(cam.cam_to_world, np.float64), float(cam.fx), float(cam.fy), float(cam.cx),
+                   float(cam.cy), int(cam.width), int(cam.height))
+
+
+@dataclass
+class ShadingInputs:
+    """Per-pixel shading inputs ``[H*W, C]`` (torch, flattened row-major) from the G-buffers."""
+
+    points: torch.Tensor
+    normals: torch.Tensor
+    wo: torch.Tensor
+    view_dirs: torch.Tensor
+    albedo: torch.Tensor
+    roughness: torch.Tensor
+    metallic: torch.Tensor
+    opacity: torch.Tensor
+    depth: torch.Tensor
+
+
+@dataclass
+class PBRResult:
+    """One rendered frame. ``hdr``, ``ldr``, ``lr``: ``[H, W, 3]`` torch (``hdr`` = C_pbr,
+    ``lr`` = O L_r); ``samples`` ``[H, W]`` int (samples spent per pixel); ``gbuffers``: the
+    rasterizer's layers as expected values (``depth`` in metres, 0 on sky; ``normal`` unit, facing
+    the camera; ``opacity``); ``timings`` (seconds) and ``counters``. With ``pixels`` given, the
+    image tensors are ``[K, 3]`` for those flat pixel indices."""
+
+    hdr: torch.Tensor
+    ldr: torch.Tensor
+    lr: torch.Tensor
+    samples: torch.Tensor
+    gbuffers: dict
+    timings: dict
+    counters: dict
+
+
+def shading_inputs(gbuf, camera: Camera, sky_opacity: float = 1.0 / 255.0) -> ShadingInputs:
+    """Unproject the G-buffers (a :class:`core.raster.RasterOutput` or a dict with ``opacity``,
+    ``depth``, ``normal``, ``albedo``, ``roughness``, ``metallic`` ``[H, W, C]`` accumulated
+    sums) into per-pixel shading inputs (see the module docstring)."""
+    from core.conventions import camera_ray_directions
+
+    g = gbuf.as_dict() if hasattr(gbuf, "as_dict") else dict(gbuf)
+    cam = Camera.of(camera)
+    h, w = cam.height, cam.width
+    for k, c in (("opacity", 1), ("depth", 1), ("normal", 3), ("albedo", 3), ("roughness", 1), ("metallic", 1)):
+        t = g.get(k)
+        if not isinstance(t, torch.Tensor) or tuple(t.shape) != (h, w, c):
+            raise ShapeError(f"gbuffers[{k!r}]: expected a tensor [{h}, {w}, {c}], got "
+                             f"{getattr(t, 'shape', type(t).__name__)}")
+    dt = g["opacity"].dtype
+    o = g["opacity"].reshape(-1, 1).clamp(0.0, 1.0)
+    inv = torch.where(o > 0, 1.0 / torch.where(o > 0, o, torch.ones_like(o)), torch.zeros_like(o))
+    d = torch.from_numpy(camera_ray_directions(cam.cam_to_world, cam.fx, cam.fy, cam.cx, cam.cy, w, h)).to(dt)
+    d = d.reshape(-1, 3)
+    c2w = torch.as_tensor(np.asarray(cam.cam_to_world, np.float64), dtype=dt)
+    fwd = c2w[:3, 2]
+    z = (g["depth"].reshape(-1, 1) * inv).clamp_min(0.0)
+    pts = c2w[:3, 3] + d * (z / (d @ fwd)[:, None])
+    n = g["normal"].reshape(-1, 3)
+    n2 = (n * n).sum(-1, keepdim=True)
+    n = torch.where(n2 > 1e-12, n / torch.sqrt(torch.where(n2 > 1e-12, n2, torch.ones_like(n2))), torch.zeros_like(n))
+    wo = -d
+    n = torch.where((n * wo).sum(-1, keepdim=True) < 0, -n, n)
+    return ShadingInputs(pts, n, wo, d, (g["albedo"].reshape(-1, 3) * inv).clamp(0, 1),
+                         (g["roughness"].reshape(-1, 1) * inv).clamp(0, 1),
+                         (g["metallic"].reshape(-1, 1) * inv).clamp(0, 1), o, z)
+
+
+def sample_pixels(opacity: torch.Tensor, n: int = 2048, *, generator: torch.Generator | None = None,
+                  sky_opacity: float = 1.0 / 255.0) -> torch.Tensor:
+    """``n`` random flat indices of non-sky pixels (without replacement; all of them if fewer)
+    of an opacity ``[H, W, 1]`` or ``[H, W]`` buffer: the training subset."""
+    o = opacity.detach().reshape(-1)
+    cand = torch.nonzero(o >= sky_opacity).reshape(-1)
+    if cand.numel() <= n:
+        return cand
+    perm = torch.randperm(cand.numel(), generator=generator)[:n]
+    return cand[perm].sort().values
+
+
+def tonemap(hdr: torch.Tensor, exposure: float, gamma: float) -> torch.Tensor:
+    """``clip(exposure * hdr, 0, 1)^(1/gamma)`` (torch; the gradient is finite at 0)."""
+    x = (hdr * exposure).clamp(0.0, 1.0)
+    return torch.where(x > 1e-8, torch.pow(x.clamp_min(1e-8), 1.0 / gamma), torch.zeros_like(x))
+
+
+class FrameContext:
+    """What several frames share: the environment map, its kernel tables, the static BVH and an
+    optional visibility cache. Build once per (environment, static scene)."""
+
+    def __init__(self, env: EnvironmentMap, settings: PBRSettings, static_gaussians=None,
+                 static_tracer: GaussianTracer | None = None):
+        from core.pbr.integrator import NativeEnv, VisibilityCache
+
+        self.env = env
+        self.settings = settings
+        self.native_env = NativeEnv(env) if settings.backend == "native" else None
+        if static_tracer is None and static_gaussians is not None and static_gaussians.num > 0:
+            static_tracer = GaussianTracer.from_gaussians(static_gaussians, settings.trace)
+        self.static_tracer = static_tracer
+        self.cache = None
+        if settings.reuse_visibility and self.native_env is not None:
+            self.cache = VisibilityCache(self.native_env, pool_size=settings.cache_pool,
+                                         cell_px=settings.cache_cell_px, block=max(1, settings.split[0]),
+                                         seed=settings.seed + 12345)
+
+
+def render_pbr(gbuf, camera, env: EnvironmentMap, *, settings: PBRSettings | None = None, tracers=(),
+               lights=None, pixels: torch.Tensor | None = None, context: FrameContext | None = None,
+               frame_index: int = 0, generator: torch.Generator | None = None) -> PBRResult:
+    """The PBR pass on G-buffers (see the module docstring).
+
+    Args:
+        gbuf: :class:`core.raster.RasterOutput` (or a dict of accumulated ``[H, W, C]`` layers).
+        camera: :class:`Camera` (or any object with its attributes).
+        env: the environment map (its radiance and sampling tables).
+        tracers: up to two :class:`GaussianTracer` (visibility = their product); with a
+            ``context``, its static tracer is used in addition. Empty = everything visible.
+        lights: a :class:`core.pbr.lights.LightSet` (world frame) or None.
+        pixels: flat pixel indices to shade (training subset); the result tensors are then
+            ``[K, 3]``. Sky pixels in the subset get ``(1 - O) E(d)`` as everywhere.
+        context: a :class:`FrameContext` to reuse tables / static BVH / cache across frames.
+        frame_index: added to the seed (clips).
+        generator: torch generator of the torch backend.
+    """
+    s = settings or PBRSettings()
+    if not isinstance(s, PBRSettings):
+        raise ConfigError(f"settings: expected PBRSettings, got {type(s).__name__}")
+    if not isinstance(env, EnvironmentMap):
+        raise ConfigError(f"env: expected an EnvironmentMap, got {type(env).__name__}")
+    cam = Camera.of(camera)
+    timings: dict = {}
+    t0 = time.perf_counter()
+    si = shading_inputs(gbuf, cam, s.sky_opacity)
+    hw = cam.height * cam.width
+    all_idx = torch.arange(hw) if pixels is None else torch.as_tensor(pixels, dtype=torch.long).reshape(-1)
+    if all_idx.numel() and (int(all_idx.min()) < 0 or int(all_idx.max()) >= hw):
+        raise ShapeError(f"pixels: indices must be in [0, {hw})")
+    o = si.opacity[all_idx]
+    shade = (o[:, 0] >= s.sky_opacity) if s.skip_sky else torch.ones(o.shape[0], dtype=torch.bool)
+    sel = all_idx[shade]
+    tr = [t for t in ((context.static_tracer if context else None), *tracers) if t is not None]
+    if len(tr) > 2:
+        raise ConfigError("tracers: at most two BVHs in total (static + dynamic)")
+    timings["setup"] = time.perf_counter() - t0
+    t1 = time.perf_counter()
+    n_env, n_brdf = s.split
+    counters: dict = {"shaded_pixels": int(sel.numel())}
+    dt = si.points.dtype
+    lr_sel = torch.zeros(sel.numel(), 3, dtype=dt)
+    samples = torch.zeros(all_idx.numel(), dtype=torch.int32)
+    if s.backend == "native":
+        from core.pbr.integrator import NativeEnv, integrate
+
+        nenv = context.native_env if context is not None and context.native_env is not None else NativeEnv(env)
+        bg = luminance(env.lookup(si.view_dirs[sel]).detach()) * (1.0 - si.opacity[sel, 0])
+        res = integrate(si.points[sel], si.normals[sel], si.wo[sel], si.albedo[sel], si.roughness[sel],
+                        si.metallic[sel], nenv, tr, lights, n_env=n_env, n_brdf=n_brdf, specular=s.specular,
+                        normal_offset=s.normal_offset, seed=s.seed * 1000003 + frame_index,
+                        batch=s.adaptive_batch if s.adaptive else (1 << 30), adapt_tol=s.adaptive_tol if s.adaptive else 0.0,
+                        adapt_min_batches=s.adaptive_min_batches, exposure=s.exposure, gamma=s.gamma,
+                        weight=si.opacity[sel, 0], background_lum=bg, depth=si.depth[sel, 0],
+                        cull_lights=s.cull_lights, cache=context.cache if context else None, fx=cam.fx,
+                        threads=s.threads, ids=sel,
+                        cache_bvhs=1 if (context is not None and context.static_tracer is not None) else 0)
+        lr_sel = torch.from_numpy(res.radiance).to(dt)
+        samples[shade] = torch.from_numpy(res.samples)
+        counters.update(res.counters)
+    else:
+        from core.pbr.lights import direct_lighting
+        from core.pbr.mis import estimate_reflected
+
+        def vis(origins, dirs, t_max=None):
+            v = torch.ones(origins.shape[0], dtype=torch.float64)
+            for t in tr:
+                v = v * t(origins, dirs, t_max).to(torch.float64)
+            return v
+
+        st: dict = {}
+        if sel.numel():
+            lr_sel = estimate_reflected(si.points[sel], si.normals[sel], si.wo[sel], si.albedo[sel],
+                                        si.roughness[sel], si.metallic[sel], env, n_rays=s.rays_per_pixel,
+                                        strategy=s.sampling, visibility=vis if tr else None, generator=generator,
+                                        specular=s.specular, normal_offset=s.normal_offset, stats=st).to(dt)
+            if lights is not None and len(lights):
+                lr_sel = lr_sel + direct_lighting(si.points[sel], si.normals[sel], si.wo[sel], si.albedo[sel],
+                                                  si.roughness[sel], si.metallic[sel], lights,
+                                                  visibility=vis if tr else None, cull=s.cull_lights,
+                                                  specular=s.specular, normal_offset=s.normal_offset,
+                                                  stats=st).to(dt)
+        samples[shade] = s.rays_per_pixel
+        counters.update(st)
+    timings["shade"] = time.perf_counter() - t1
+    t2 = time.perf_counter()
+    lr = torch.zeros(all_idx.numel(), 3, dtype=dt)
+    lr = lr.index_put((torch.nonzero(shade).reshape(-1),), lr_sel)
+    lr = lr * o
+    sky = env.lookup(si.view_dirs[all_idx]).to(dt)
+    hdr = (1.0 - o) * sky + lr
+    ldr = tonemap(hdr, s.exposure, s.gamma)
+    g = gbuf.as_dict() if hasattr(gbuf, "as_dict") else dict(gbuf)
+    gb = {
+        "opacity": si.opacity.detach().reshape(cam.height, cam.width, 1),
+        "depth": torch.where(si.opacity > s.sky_opacity, si.depth, torch.zeros_like(si.depth)).detach()
+        .reshape(cam.height, cam.width, 1),
+        "normal": si.normals.detach().reshape(cam.height, cam.width, 3),
+        "albedo": si.albedo.detach().reshape(cam.height, cam.width, 3),
+        "roughness": si.roughness.detach().reshape(cam.height, cam.width, 1),
+        "metallic": si.metallic.detach().reshape(cam.height, cam.width, 1),
+    }
+    if "color" in g and isinstance(g["color"], torch.Tensor):
+        gb["color"] = g["color"].detach()
+    if pixels is None:
+        hdr = hdr.reshape(cam.height, cam.width, 3)
+        ldr = ldr.reshape(cam.height, cam.width, 3)
+        lr = lr.reshape(cam.height, cam.width, 3)
+        samples = samples.reshape(cam.height, cam.width)
+    timings["compose"] = time.perf_counter() - t2
+    return PBRResult(hdr, ldr, lr, samples, gb, timings, counters)
+
+
+class ClipRenderer:
+    """Render frames of a scene along a camera path with reuse across frames.
+
+    Args:
+        scene: a :class:`core.scene_graph.SceneGraph` or a :class:`core.gaussians.Gaussians`
+            (static).
+        env: environment map.
+        settings: :class:`PBRSettings`.
+        lights: list of :class:`core.pbr.lights.PointLight` / ``SpotLight`` (placed per frame by
+            the node poses).
+        static_reuse: build the shadow-ray BVH of the background and static nodes once (True) or
+            rebuild the whole BVH every frame (False: the "without" of that skip).
+        raster_settings: :class:`core.raster.RasterSettings` for the G-buffers.
+    """
+
+    def __init__(self, scene, env: EnvironmentMap, settings: PBRSettings | None = None, *, lights=(),
+                 static_reuse: bool = True, raster_settings=None):
+        from core.gaussians import Gaussians
+        from core.raster import RasterSettings
+        from core.scene_graph import SceneGraph
+
+        self.settings = settings or PBRSettings()
+        self.env = env
+        self.lights = list(lights)
+        self.static_reuse = bool(static_reuse)
+        self.raster_settings = raster_settings or RasterSettings(threads=self.settings.threads or None)
+        if isinstance(scene, SceneGraph):
+            self.graph = scene
+            self.static = scene._static_part().detach() if self.static_reuse else None
+        elif isinstance(scene, Gaussians):
+            self.graph = None
+            self.static = scene.detach()
+        else:
+            raise ConfigError(f"scene: expected a SceneGraph or Gaussians, got {type(scene).__name__}")
+        t0 = time.perf_counter()
+        self.context = FrameContext(env, self.settings, static_gaussians=self.static if self.static_reuse else None)
+        self.setup_seconds = time.perf_counter() - t0
+
+    def render(self, camera, time_s: float = 0.0, frame_index: int = 0) -> PBRResult:
+        from core.pbr.lights import lights_to_world
+        from core.raster import rasterize_gaussians
+
+        cam = Camera.of(camera)
+        t0 = time.perf_counter()
+        with torch.no_grad():
+            if self.graph is not None:
+                g = self.graph.compose(float(time_s)).detach()
+                poses = self.graph.node_poses(float(time_s))
+            else:
+                g = self.static
+                poses = {}
+            dyn = None
+            if self.static_reuse:
+                n_static = self.static.num if self.static is not None else 0
+                if g.num > n_static:
+                    dyn = GaussianTracer.from_gaussians(g.index(slice(n_static, None)), self.settings.trace)
+            else:
+                dyn = GaussianTracer.from_gaussians(g, self.settings.trace) if g.num else None
+            t_bvh = time.perf_counter() - t0
+            out = rasterize_gaussians(g, torch.as_tensor(cam.cam_to_world, dtype=g.dtype), cam.fx, cam.fy, cam.cx,
+                                      cam.cy, cam.width, cam.height, settings=self.raster_settings)
+            t_raster = time.perf_counter() - t0 - t_bvh
+            ls = lights_to_world(self.lights, poses) if self.lights else None
+            res = render_pbr(out, cam, self.env, settings=self.settings, tracers=[dyn] if dyn else [], lights=ls,
+                             context=self.context, frame_index=frame_index)
+        res.timings["bvh"] = t_bvh
+        res.timings["raster"] = t_raster
+        res.timings["total"] = time.perf_counter() - t0
+        return res
+
+
+def write_frame_exr(path: str | os.PathLike, result: PBRResult) -> None:
+    """One multi-layer EXR: beauty ``R, G, B`` and ``Lr`` in float32 (never overflows), the
+    G-buffers (opacity, depth in metres, normal, albedo, roughness, metallic, color if present)
+    and ``samples`` (per pixel) in half (clamped at 65504 by the writer, never Inf)."""
+    from core.io.exr import write_exr
+
+    if result.hdr.dim() != 3:
+        raise ShapeError("result: a full frame is needed (rendered without pixels=)")
+    layers = {"rgb": result.hdr.detach().to(torch.float32).numpy(),
+              "Lr": result.lr.detach().to(torch.float32).numpy()}
+    for k, v in result.gbuffers.items():
+        layers[k] = v.detach().to(torch.float32).numpy()
+    layers["samples"] = result.samples.to(torch.float32).numpy()
+    write_exr(path, layers, precision={"rgb": "float", "Lr": "float"})
+
+
+def write_clip_mp4(path: str | os.PathLike, frames, fps: float = 10) -> None:
+    """LDR frames (``[H, W, 3]`` tensors or arrays in [0, 1], or :class:`PBRResult`) as H.264 MP4."""
+    from core.io.video import write_mp4
+    from core.tonemap import ldr_to_uint8
+
+    def u8(f):
+        x = f.ldr if isinstance(f, PBRResult) else f
+        x = x.detach().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
+        return ldr_to_uint8(np.clip(x, 0.0, 1.0))
+
+    write_mp4(path, (u8(f) for f in frames), fps=fps)

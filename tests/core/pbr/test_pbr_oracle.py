@@ -1,0 +1,108 @@
+"""The oracle Gaussian scene (Gaussians on mesh surfaces) and the shared native build helper."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from core.conventions import look_at, project_points
+from core.errors import ConfigError, DependencyError
+from core.pbr.oracle import OracleSettings, budget_scale, oracle_gaussians, predicted_count
+from core.raster import rasterize_gaussians
+from core.synth import geometry as geo
+from core.synth.street import Material, Part
+
+MAT = Material("m", (0.5, 0.4, 0.3), 0.6, 0.0)
+
+
+def _quad_scene():
+    part = Part("q", *geo.quad([(-1, 0, 0), (1, 0, 0), (1, 0, 2), (-1, 0, 2)]), MAT)
+    c2w = look_at(np.array([0.0, -10.0, 1.0]), np.array([0.0, 0.0, 1.0]))
+    return part, c2w
+
+
+def test_gaussians_lie_on_the_faces_with_face_normals_and_materials():
+    box = Part("b", *geo.box((0.0, 0.0, 0.5), (1.0, 2.0, 1.0)), Material("b", (0.2, 0.3, 0.4), 0.25, 1.0))
+    g = oracle_gaussians([box], np.array([[0.0, -5.0, 1.0]]), 100.0, OracleSettings(spacing_px=2.0))
+    m = g.means.double()
+    # every mean is on the box surface (within the edge inset, on one of the 6 planes)
+    d = torch.minimum(torch.minimum((m[:, 0].abs() - 0.5).abs(), (m[:, 1].abs() - 1.0).abs()),
+                      torch.minimum((m[:, 2] - 0.0).abs(), (m[:, 2] - 1.0).abs()))
+    assert float(d.max()) < 1e-5
+    n = g.unit_normals().double()
+    assert torch.allclose(n.abs().max(-1).values, torch.ones(g.num, dtype=torch.float64), atol=1e-6)
+    np.testing.assert_allclose(g.albedo().numpy(), np.tile([0.2, 0.3, 0.4], (g.num, 1)), atol=1e-5)
+    np.testing.assert_allclose(g.metallic().numpy(), 1.0, atol=1e-5)
+    # flat: the smallest scale is the thickness and lies along the normal
+    from core.raster import quat_to_rotmat
+
+    r = quat_to_rotmat(g.rotations().double())
+    np.testing.assert_allclose((r[:, :, 2] * n).sum(-1).abs().numpy(), 1.0, atol=1e-5)
+    assert float(g.scales()[:, 2].max()) == pytest.approx(OracleSettings().thickness, rel=1e-4)
+    assert float(g.opacities().min()) == pytest.approx(0.99, abs=1e-4)
+
+
+def test_surface_composites_opaque_and_silhouette_on_the_mesh_edge():
+    part, c2w = _quad_scene()
+    fx, w, h = 200.0, 160, 160
+    g = oracle_gaussians([part], c2w[:3, 3][None], fx, OracleSettings(spacing_px=1.5))
+    out = rasterize_gaussians(g, torch.tensor(c2w, dtype=torch.float32), fx, fx, w / 2, h / 2, w, h)
+    o = out.opacity[..., 0].numpy()
+    uv, _ = project_points(np.array([[-1, 0, 0], [1, 0, 2.0]]), c2w, fx, fx, w / 2, h / 2)
+    c0, c1 = int(round(uv[0, 0])), int(round(uv[1, 0]))  # true edges at pixel borders 60 and 100
+    assert o[65:95, 65:95].min() > 0.99
+    row = o[h // 2]
+    assert row[c0] > 0.5 and row[c0 - 1] < 0.5 and row[c1 - 1] > 0.5 and row[c1] < 0.5
+
+
+def test_budget_and_predicted_count():
+    part, c2w = _quad_scene()
+    cams = c2w[:3, 3][None]
+    n = predicted_count([part], cams, 200.0, OracleSettings(spacing_px=3.0))
+    assert oracle_gaussians([part], cams, 200.0, OracleSettings(spacing_px=3.0)).num == n
+    s = budget_scale([part], cams, 200.0, 300)
+    g = oracle_gaussians([part], cams, 200.0, budget=300)
+    assert 0.8 * 300 <= g.num <= 300 and s > 1.0
+
+
+def test_lambert_materials_and_validation():
+    lam = Part("l", *geo.quad([(-1, 0, 0), (1, 0, 0), (1, 0, 2), (-1, 0, 2)]),
+               Material("l", (0.7, 0.7, 0.7), 0.2, 0.5, "lambert"))
+    g = oracle_gaussians([lam], np.array([[0.0, -5.0, 1.0]]), 100.0)
+    np.testing.assert_allclose(g.roughness().numpy(), 1.0, atol=1e-5)
+    np.testing.assert_allclose(g.metallic().numpy(), 0.0, atol=1e-5)
+    for kw, name in ((dict(spacing_px=0.0), "spacing_px"), (dict(opacity=1.5), "opacity"),
+                     (dict(max_cells=0), "max_cells"), (dict(edge_inset=-1.0), "edge_inset")):
+        with pytest.raises(ConfigError, match=name):
+            OracleSettings(**kw)
+    with pytest.raises(ConfigError, match="camera_positions"):
+        oracle_gaussians([lam], np.zeros((0, 3)), 100.0)
+
+
+def test_native_build_caches_by_source_and_reports_compiler_errors(tmp_path, monkeypatch):
+    from core import native_build
+
+    monkeypatch.setenv("BRDFUSION_CACHE_DIR", str(tmp_path))
+    src = tmp_path / "k.cpp"
+    src.write_text('extern "C" int k_abi() { return 7; }\n')
+    a = native_build.build_shared_library(src, name="k", subdir="t", what="test kernels")
+    assert a.exists() and a.parent == tmp_path / "t"
+    assert native_build.build_shared_library(src, name="k", subdir="t", what="test kernels") == a  # cached
+    lib = native_build.NativeLibrary(src, name="k", subdir="t", what="test kernels", declare=lambda l: None,
+                                     abi_symbol="k_abi", abi_version=7)
+    assert lib.get().k_abi() == 7
+    src.write_text('extern "C" int k_abi() { return 8; }\n')
+    b = native_build.build_shared_library(src, name="k", subdir="t", what="test kernels")
+    assert b != a  # a source edit rebuilds
+    bad = native_build.NativeLibrary(src, name="k", subdir="t", what="test kernels", declare=lambda l: None,
+                                     abi_symbol="k_abi", abi_version=7)
+    with pytest.raises(DependencyError, match="ABI mismatch"):
+        bad.get()
+    src.write_text("this is not C++\n")
+    with pytest.raises(DependencyError, match="building test kernels failed"):
+        native_build.build_shared_library(src, name="k", subdir="t", what="test kernels")
+    monkeypatch.setenv("BRDFUSION_CXX", str(tmp_path / "no-such-compiler"))
+    with pytest.raises(DependencyError, match="C\\+\\+ compiler"):
+        native_build.build_shared_library(src, name="k", subdir="t", what="test kernels")
+    assert not list((tmp_path / "t").glob("tmp*"))  # no temporary files left behind
