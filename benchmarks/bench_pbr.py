@@ -138,12 +138,10 @@ class Bench:
         for p in self.street.static_parts:
             if p.name.startswith("pole"):
                 v = np.asarray(p.vertices)
-                top = v[v[:, 2] > 5.8]
-                c = top.mean(0)
+                top = v[v[:, 2] > 5.8]  # the lamp arm; the light hangs under its far end
                 far = top[np.argmax(np.abs(top[:, 1] - v[:, 1].mean()))]
                 out.append(PointLight(tuple(far - np.array([0, 0, 0.1])), color=(1.0, 0.85, 0.6), intensity=60.0,
                                       range=12.0, name=p.name))
-                del c
         for n in self.graph.nodes:
             for side in (-0.6, 0.6):
                 out.append(SpotLight((2.25, side, -0.1), direction=(1.0, 0.0, -0.08), inner_deg=12, outer_deg=30,

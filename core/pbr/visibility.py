@@ -33,7 +33,9 @@ tests; one call spreads the rays over ``std::thread`` workers (one per core). Bu
 for 50k Gaussians. Throughput on these 2-core machines (synthetic street, 50k flat Gaussians,
 cosine-distributed shadow rays from surface points): ~0.6 Mrays/s on one core, ~0.9-1.2 Mrays/s
 on two (measured while the machine was shared); see the per-ray counters in
-:attr:`GaussianTracer.last_stats`.
+:attr:`GaussianTracer.last_stats`. A tracer also holds the fused integrator's copy
+(:meth:`GaussianTracer.native_handle`): the same SAH build collapsed to an 8-wide BVH with the
+records as SoA float32 arrays for a 16-wide AVX-512 leaf test (:mod:`core.pbr.integrator`).
 """
 
 from __future__ import annotations

@@ -5,7 +5,6 @@ non-negative values and gradients; white furnace)."""
 
 from __future__ import annotations
 
-import math
 
 import numpy as np
 import pytest
