@@ -87,7 +87,9 @@ def test_dashboard_end_to_end_in_chromium(settings, tmp_path, browser):
         procs.append(gw)
         procs.append(start_worker(settings, tmp_path / "worker.log"))
         c = httpx.Client(base_url=base, headers={"Authorization": f"Bearer {OPERATOR_KEY}"}, timeout=30)
-        z = zip_bundle(make_bundle(tmp_path / "b", frames=24, width=128, height=96, test_frames=4), tmp_path / "b.zip")
+        # big enough that the export takes several seconds even on an idle machine, so the page is
+        # seen showing the job queued or running before it is done
+        z = zip_bundle(make_bundle(tmp_path / "b", frames=80, width=160, height=120, test_frames=8), tmp_path / "b.zip")
         sid = c.post("/scenes", content=z.read_bytes(), headers={"Content-Type": "application/zip"}).json()["id"]
 
         browser.get(base + "/dashboard")
@@ -123,7 +125,7 @@ def test_dashboard_end_to_end_in_chromium(settings, tmp_path, browser):
         WebDriverWait(browser, 20).until(lambda d: d.execute_script(
             "return arguments[0].complete && arguments[0].naturalWidth > 0", img))
         w = browser.execute_script("return arguments[0].naturalWidth", img)
-        assert w == 3 * 128, w  # the G-buffer mosaic: three frames wide
+        assert w == 3 * 160, w  # the G-buffer mosaic: three frames wide
         # queues and workers with heartbeats
         assert browser.find_element(By.CSS_SELECTOR, "#queues tr[data-queue='render']")
         worker_rows = browser.find_elements(By.CSS_SELECTOR, "#workers tr.worker")
