@@ -10,6 +10,11 @@ import time
 import httpx
 import pytest
 
+try:
+    from selenium.common.exceptions import NoSuchElementException, StaleElementReferenceException
+except ImportError:  # the browser test skips without selenium; the other tests still run
+    NoSuchElementException = StaleElementReferenceException = RuntimeError
+
 from conftest_shared import OPERATOR_KEY
 from svc_support import make_bundle, start_gateway, start_worker, zip_bundle
 
@@ -76,6 +81,18 @@ def browser(tmp_path):
 
 
 @pytest.mark.slow
+def _text(browser, css: str, tries: int = 20) -> str:
+    """Text of the element at ``css``, retried while the live refresh swaps the DOM under it."""
+    from selenium.webdriver.common.by import By
+
+    for _ in range(tries):
+        try:
+            return browser.find_element(By.CSS_SELECTOR, css).text
+        except (StaleElementReferenceException, NoSuchElementException):
+            time.sleep(0.2)
+    return browser.find_element(By.CSS_SELECTOR, css).text
+
+
 def test_dashboard_end_to_end_in_chromium(settings, tmp_path, browser):
     from selenium.webdriver.common.by import By
     from selenium.webdriver.support import expected_conditions as EC
@@ -95,11 +112,12 @@ def test_dashboard_end_to_end_in_chromium(settings, tmp_path, browser):
         browser.get(base + "/dashboard")
         browser.find_element(By.ID, "key").send_keys("brdf_wrong-key")
         browser.find_element(By.ID, "login").click()
-        assert "not a valid operator key" in browser.find_element(By.ID, "login-error").text
+        err = WebDriverWait(browser, 20).until(EC.presence_of_element_located((By.ID, "login-error")))
+        assert "not a valid operator key" in err.text
         browser.find_element(By.ID, "key").send_keys(OPERATOR_KEY)
         browser.find_element(By.ID, "login").click()
         WebDriverWait(browser, 20).until(EC.presence_of_element_located((By.ID, "jobs")))
-        assert "no jobs yet" in browser.find_element(By.ID, "jobs").text
+        assert "no jobs yet" in _text(browser, "#jobs")
 
         jid = c.post(f"/scenes/{sid}/render", json={}).json()["id"]
         row = f"tr.job[data-job-id='{jid}']"
@@ -108,17 +126,20 @@ def test_dashboard_end_to_end_in_chromium(settings, tmp_path, browser):
         states = set()
         deadline = time.time() + 120
         while time.time() < deadline:
-            els = browser.find_elements(By.CSS_SELECTOR, row)
-            if els:
-                states.add(els[0].get_attribute("data-state"))
-                if "done" in states:
-                    break
+            try:  # the live refresh replaces the table: an element may go stale between calls
+                els = browser.find_elements(By.CSS_SELECTOR, row)
+                if els:
+                    states.add(els[0].get_attribute("data-state"))
+                    if "done" in states:
+                        break
+            except StaleElementReferenceException:
+                pass
             time.sleep(0.3)
         assert "done" in states, f"states seen: {states}\n{gw.tail()}"
         assert states & {"queued", "running"}, f"the job was never seen before it finished: {states}"
         assert browser.execute_script("return window.__noReload;") == marker, "the page was reloaded"
-        assert browser.find_element(By.CSS_SELECTOR, row + " .pct").text == "100%"
-        assert browser.find_element(By.CSS_SELECTOR, row + " td:nth-child(6)").text == "upload"
+        assert _text(browser, row + " .pct") == "100%"
+        assert _text(browser, row + " td:nth-child(6)") == "upload"
         # the preview image is served to the logged-in browser and decodes
         img = WebDriverWait(browser, 20).until(EC.presence_of_element_located(
             (By.CSS_SELECTOR, f"#previews figure[data-job-id='{jid}'] img.preview")))
