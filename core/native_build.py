@@ -163,3 +163,11 @@ class NativeLibrary:
                                               f"{self.abi_version}); delete {cache_dir(self.subdir)}")
                     self._lib = loaded
         return self._lib
+
+
+def default_threads() -> int:
+    """Cores this process may run on (``os.sched_getaffinity``), at least 1."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # pragma: no cover - non-Linux
+        return max(1, os.cpu_count() or 1)

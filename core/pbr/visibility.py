@@ -52,12 +52,7 @@ from core.errors import ConfigError, ShapeError
 from core.numerics import require_finite, safe_normalize
 
 
-def default_threads() -> int:
-    """Cores this process may run on, at least 1."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # pragma: no cover - non-Linux
-        return max(1, os.cpu_count() or 1)
+from core.native_build import default_threads  # noqa: E402,F401 - one definition, re-exported
 
 
 @dataclass(frozen=True)

@@ -22,12 +22,7 @@ NUM_FEATURES = 12
 NUM_OUTPUTS = 13
 
 
-def default_threads() -> int:
-    """Cores this process may run on (``os.sched_getaffinity``), at least 1."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # pragma: no cover - non-Linux
-        return max(1, os.cpu_count() or 1)
+from core.native_build import default_threads  # noqa: E402,F401 - one definition, re-exported
 
 
 @dataclass(frozen=True)
