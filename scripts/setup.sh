@@ -4,12 +4,20 @@
 # in /opt/wheels (TORCH_WHEEL_DIR overrides); the "+cpu" pin means no CUDA build is ever pulled.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-# System packages the service tests need (headless browser tests of the dashboard): installed only
-# when missing, only as root with apt-get; BRDF_SKIP_SYSTEM_PACKAGES=1 skips this (image builds).
-if [ "${BRDF_SKIP_SYSTEM_PACKAGES:-0}" != "1" ] && [ "$(id -u)" = "0" ] && command -v apt-get >/dev/null 2>&1 \
-   && { ! command -v chromium >/dev/null 2>&1 || ! command -v chromedriver >/dev/null 2>&1; }; then
-  echo "installing chromium and chromium-driver (dashboard browser tests)"
-  apt-get update -qq >/dev/null && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium chromium-driver >/dev/null
+# System packages, installed only when missing, only as root with apt-get;
+# BRDF_SKIP_SYSTEM_PACKAGES=1 skips this (image builds):
+# - chromium, chromium-driver: headless browser tests of the dashboard;
+# - libllvm19: Mitsuba's vectorised llvm_ad_rgb variant (paper-BRDF ground truth, core/synth/mitsuba_paper.py);
+#   Debian's default LLVM 14/15 cannot compile its kernels ("Cannot select: fminimum").
+if [ "${BRDF_SKIP_SYSTEM_PACKAGES:-0}" != "1" ] && [ "$(id -u)" = "0" ] && command -v apt-get >/dev/null 2>&1; then
+  pkgs=""
+  { command -v chromium >/dev/null 2>&1 && command -v chromedriver >/dev/null 2>&1; } || pkgs="chromium chromium-driver"
+  ls /usr/lib/x86_64-linux-gnu/libLLVM.so.19* /usr/lib/*/libLLVM-19.so >/dev/null 2>&1 || pkgs="$pkgs libllvm19"
+  if [ -n "$pkgs" ]; then
+    echo "installing system packages:$pkgs"
+    apt-get update -qq >/dev/null && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $pkgs >/dev/null \
+      || echo "warning: could not install$pkgs (the tests that need them will be skipped or fail)"
+  fi
 fi
 PY=${PYTHON:-python3.11}
 command -v "$PY" >/dev/null 2>&1 || PY=python3

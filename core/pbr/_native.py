@@ -25,7 +25,7 @@ _SRC = _DIR / "_integrator.cpp"
 _DEPS = (_DIR / "_visibility.cpp",)
 #: ABI of the shadow-ray entry points (``bv_abi_version``) and of the integrator (``pi_abi_version``).
 _ABI_VERSION = 2
-_PI_ABI_VERSION = 7
+_PI_ABI_VERSION = 9
 #: Size in bytes of one 4-wide BVH node in the kernel (must match ``struct Node4``).
 NODE_BYTES = 128
 #: Size in bytes of one 8-wide BVH node of the integrator (must match ``struct Node8``).
@@ -39,7 +39,7 @@ SOA_PAD = 16
 #: float32 values per light record of ``pi_render``.
 LIGHT_FLOATS = 16
 #: int64 counters returned by ``pi_render``.
-NUM_COUNTERS = 10
+NUM_COUNTERS = 11
 
 
 def _declare(lib: ctypes.CDLL) -> None:

@@ -208,7 +208,7 @@ def integrate(points, normals, wo, albedo, roughness, metallic, env: NativeEnv, 
               gamma: float = 2.2, weight=None, background_lum=None, depth=None, cull_lights: bool = True,
               cache: VisibilityCache | None = None, fx: float = 1.0, threads: int = 0,
               ids=None, cache_bvhs: int | None = None, mis_min_brdf: float = 0.0,
-              roulette: float = 0.0) -> IntegratorOutput:
+              roulette: float = 0.0, cache_check: float = 0.0) -> IntegratorOutput:
     """Run the fused kernel on ``P`` shading points (world frame, metres; see the module
     docstring). ``normals`` are used as given (face them toward the viewer first); ``lights`` is
     a :class:`core.pbr.lights.LightSet` or None; ``tracers`` up to two
@@ -224,7 +224,11 @@ def integrate(points, normals, wo, albedo, roughness, metallic, env: NativeEnv, 
     rough dielectrics spend most samples on the environment and glossy metal half on the BRDF;
     ``roulette`` > 0: shadow-ray Russian roulette (unbiased): after a point's first 4 samples, a
     sample whose unoccluded contribution ``g`` is below ``roulette`` x the running mean is traced
-    with probability ``q = max(g / (roulette x mean), 0.05)`` and weighted ``1/q``."""
+    with probability ``q = max(g / (roulette x mean), 0.05)`` and weighted ``1/q``;
+    ``cache_check`` > 0 (with ``cache``): a cache hit is re-traced with this probability; an entry
+    whose traced value differs from the cached one (taken at another point of the cell) by more
+    than 0.25 is retired and traced at every later lookup, so cells crossed by a shadow edge stop
+    using the cache (0: cached values are used as they are, shadows blurred to the cell size)."""
     from core.pbr.visibility import TraceSettings, default_threads
 
     pos = _np(points).reshape(-1, 3)
@@ -263,7 +267,8 @@ def integrate(points, normals, wo, albedo, roughness, metallic, env: NativeEnv, 
                         cache.pool_size if cache else 1, nthreads, nb, int(cache_bvhs)], np.int64)
     fparams = np.array([adapt_tol, exposure, 1.0 / gamma, normal_offset, specular,
                         cache.cell_px if cache else 0.0, 1.0 / fx, ts.t_min, ts.early_stop, ts.max_alpha,
-                        float(int(seed) % (2 ** 52)), float(mis_min_brdf), float(roulette)], np.float64)
+                        float(int(seed) % (2 ** 52)), float(mis_min_brdf), float(roulette),
+                        float(cache_check)], np.float64)
     out = np.zeros((p, 3), np.float32)
     used = np.zeros(p, np.int32)
     counters = np.zeros(_native.NUM_COUNTERS, np.int64)
@@ -277,5 +282,5 @@ def integrate(points, normals, wo, albedo, roughness, metallic, env: NativeEnv, 
             cache.pool_rad.ctypes.data if cache else None, cache._ptr if cache else None,
             out.ctypes.data, used.ctypes.data, counters.ctypes.data)
     names = ("samples", "shadow_rays", "cache_hits", "cache_lookups", "light_pairs", "light_evals", "node_visits",
-             "leaf_visits", "traced_rays", "roulette_skipped")
+             "leaf_visits", "traced_rays", "roulette_skipped", "cache_checks")
     return IntegratorOutput(out, used, {k: int(v) for k, v in zip(names, counters)})

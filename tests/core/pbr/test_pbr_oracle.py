@@ -56,6 +56,31 @@ def test_surface_composites_opaque_and_silhouette_on_the_mesh_edge():
     assert row[c0] > 0.5 and row[c0 - 1] < 0.5 and row[c1 - 1] > 0.5 and row[c1] < 0.5
 
 
+def test_edge_refine_sharpens_the_silhouette_and_keeps_the_surface_opaque():
+    part, c2w = _quad_scene()
+    fx, w, h = 200.0, 160, 160
+    widths, crossings = {}, {}
+    for k in (1, 4):
+        g = oracle_gaussians([part], c2w[:3, 3][None], fx, OracleSettings(spacing_px=3.0, edge_refine=k))
+        m = g.means.double()
+        assert float(m[:, 1].abs().max()) < 1e-6  # on the plane y = 0
+        assert float(m[:, 0].abs().max()) < 1.0 and float(m[:, 2].min()) > 0.0 and float(m[:, 2].max()) < 2.0
+        out = rasterize_gaussians(g, torch.tensor(c2w, dtype=torch.float32), fx, fx, w / 2, h / 2, w, h)
+        o = out.opacity[..., 0].numpy()
+        assert o[68:92, 68:92].min() > 0.99
+        row = o[h // 2].astype(np.float64)
+        uv, _ = project_points(np.array([[-1, 0, 0], [1, 0, 2.0]]), c2w, fx, fx, w / 2, h / 2)
+        edge = float(uv[0, 0])  # the mesh edge (a pixel border)
+        i = int(np.argmax(row > 0.5))  # first pixel centre (i + 0.5) above 50% opacity
+        crossing = i - 0.5 + (0.5 - row[i - 1]) / (row[i] - row[i - 1])  # linear between centres
+        crossings[k] = crossing - edge
+        widths[k] = int(((row > 0.05) & (row < 0.95)).sum())  # pixels of the opacity ramp
+    # the silhouette (50% opacity) is within a pixel of the mesh edge, closer with the fine band;
+    # the ramp is narrower (the rasteriser's 0.3 px^2 low-pass still widens sub-pixel Gaussians)
+    assert abs(crossings[1]) < 0.75 and abs(crossings[4]) < 0.3, crossings
+    assert widths[4] < widths[1], widths
+
+
 def test_budget_and_predicted_count():
     part, c2w = _quad_scene()
     cams = c2w[:3, 3][None]
@@ -73,7 +98,8 @@ def test_lambert_materials_and_validation():
     np.testing.assert_allclose(g.roughness().numpy(), 1.0, atol=1e-5)
     np.testing.assert_allclose(g.metallic().numpy(), 0.0, atol=1e-5)
     for kw, name in ((dict(spacing_px=0.0), "spacing_px"), (dict(opacity=1.5), "opacity"),
-                     (dict(max_cells=0), "max_cells"), (dict(edge_inset=-1.0), "edge_inset")):
+                     (dict(max_cells=0), "max_cells"), (dict(edge_inset=-1.0), "edge_inset"),
+                     (dict(edge_refine=0), "edge_refine"), (dict(edge_refine=2.5), "edge_refine")):
         with pytest.raises(ConfigError, match=name):
             OracleSettings(**kw)
     with pytest.raises(ConfigError, match="camera_positions"):
