@@ -437,6 +437,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         why = jt.unavailable(params) if jt.unavailable is not None else None
         if why:
             raise _err(409, f"{why}; no job was queued")
+        if jt.precondition is not None:
+            with db.session() as s:
+                why = jt.precondition(s, scene_id, get_scene(s, scene_id, p).tenant)
+            if why:
+                raise _err(409, f"{why}; no job was queued")
         pj = params.model_dump(mode="json")
         fp = _fingerprint(type_name, scene_id, pj)
         jid = new_id()
@@ -484,9 +489,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     @app.post("/scenes/{scene_id}/relight", status_code=202, response_model=S.JobAccepted, tags=["jobs"],
               responses=R409)
     def relight(scene_id: IdPath, body: S.RelightRequest, p: P, idem: IdemKey = None):
-        """Relight the reconstructed scene under another environment map, with local lights and object
-        edits. Answers 409 "not available in this build" until the PBR pass is registered as the
-        ``relight`` job type."""
+        """Relight the reconstructed scene (its latest finished reconstruct job) under another
+        environment map, with local lights and object edits: EXR frames, MP4 and a PNG preview.
+        409 while the scene has no finished reconstruction."""
         if body.envmap_id is not None:
             with db.session() as s:
                 if s.scalar(visible(select(Envmap).where(Envmap.id == body.envmap_id), Envmap, p)) is None:
@@ -496,7 +501,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     @app.post("/scenes/{scene_id}/night", status_code=202, response_model=S.JobAccepted, tags=["jobs"],
               responses=R409)
     def night(scene_id: IdPath, body: S.NightRequest, p: P, idem: IdemKey = None):
-        """Night scenario with street lights and headlights (409 until the ``night`` job type exists)."""
+        """Night scenario: the scene's sky dimmed, headlights on every tracked object, street lights
+        given as ``lights``. 409 while the scene has no finished reconstruction."""
         return submit(p, scene_id, "night", body, idem)
 
     @app.post("/scenes/{scene_id}/reconstruct", status_code=202, response_model=S.JobAccepted, tags=["jobs"],

@@ -438,3 +438,6 @@ register(JobType("reconstruct", QUEUE_TRAIN, ReconstructRequest, run_reconstruct
 
 def format_ts(t: datetime | None) -> str | None:
     return t.isoformat() if t else None
+
+
+import worker.relight  # noqa: E402,F401  (registers the relight and night job types)

@@ -32,6 +32,9 @@ class JobType:
     #: Returns why this build cannot serve a valid request (e.g. it asks for a stage that has not
     #: landed), or None; the gateway then answers 409 and queues nothing.
     unavailable: Callable[[BaseModel], str | None] | None = None
+    #: ``(session, scene_id, tenant) -> reason or None``: what the scene must have before this job
+    #: can run (e.g. a finished reconstruction); the gateway answers 409 with the reason.
+    precondition: Callable[[object, str, str], str | None] | None = None
 
 
 REGISTRY: dict[str, JobType] = {}

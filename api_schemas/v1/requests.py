@@ -25,7 +25,8 @@ Mat4 = Annotated[list[Row4], Field(min_length=4, max_length=4,
                                    description="4x4 rigid transform, row-major, metres")]
 Degrees = Annotated[float, Field(allow_inf_nan=False, ge=-360.0, le=360.0)]
 Ev = Annotated[float, Field(allow_inf_nan=False, ge=-20.0, le=20.0,
-                            description="exposure in stops: the HDR result is scaled by 2^ev")]
+                            description="exposure in stops: the LDR frames are (2^ev HDR)^(1/2.2); "
+                                        "the EXR keeps the unscaled HDR")]
 
 
 class OutputKind(str, Enum):
@@ -56,6 +57,9 @@ class Quality(Model):
     denoiser: Denoiser = Field(Denoiser.oidn, description="none, oidn (Open Image Denoise) or "
                                                          "diffusion (the generative pass)")
     sdedit_strength: Unit = Field(0.3, description="noise level tau of the generative pass, 0..1")
+    denoiser_fallback: Literal["none", "oidn"] | None = Field(
+        None, description="if the denoiser's model cannot be used (missing, corrupt, wrong contract), "
+                          "use this one instead of failing the job; null: fail")
 
 
 class FrameRange(Model):

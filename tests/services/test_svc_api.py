@@ -313,15 +313,16 @@ def test_cancel_queued_job(client, scene_id, settings):
 
 @pytest.mark.parametrize("path,body", [
     ("relight", {"envmap_name": "city", "rotation_deg": 30, "lights": [
-        {"kind": "point", "position": [1, 2, 3], "intensity": 50}]}),
-    ("night", {"street_lights": True, "headlights": False}),
+        {"kind": "point", "position": [1, 2, 3], "intensity": 50}]}),  # no reconstruction yet
+    ("night", {"street_lights": True, "headlights": False}),  # no reconstruction yet
     ("reconstruct", {"profile": "quick"}),  # the default chain: later stages have not landed
     ("reconstruct", {"profile": "paper", "stages": ["volume"]}),  # a GPU profile
 ])
 def test_unbuilt_job_types_answer_409_and_queue_nothing(client, scene_id, app, settings, path, body):
     r = client.post(f"/scenes/{scene_id}/{path}", json=body)
     assert r.status_code == 409, r.text
-    assert "not available" in r.json()["detail"] and "no job was queued" in r.json()["detail"]
+    why = "no finished reconstruction" if path in ("relight", "night") else "not available"
+    assert why in r.json()["detail"] and "no job was queued" in r.json()["detail"]
     with app.state.db.session() as s:
         assert s.scalar(select(func.count()).select_from(Job)) == 0
     rr = redis.Redis.from_url(settings.redis_url)

@@ -9,6 +9,7 @@ import threading
 import time
 from datetime import timedelta
 
+import numpy as np
 import pytest
 import redis
 from sqlalchemy import select, update
@@ -286,3 +287,42 @@ def test_reconstruct_volume_stage_end_to_end(client, app, settings, tiny_zip):
         assert len(st.metrics["loss"]) == 30 and st.metrics["test_psnr"] == summary["test_psnr"]
     # the resume state of a finished job is cleaned up
     assert not (settings.data_dir / "checkpoints" / jid / "volume").exists()
+
+    # relight and night now run on the reconstruction (the render queue)
+    objects = [n.name for n in __import__("core.scene_graph", fromlist=["SceneGraph"]).SceneGraph.load(
+        _download(client, arts["checkpoint/scene_graph.pt"]["url"], settings.data_dir / "g.pt")).nodes]
+    body = {"envmap_name": "sunset", "rotation_deg": 40, "exposure_ev": 0.5, "frames": {"split": "all", "stop": 3},
+            "quality": {"rays_per_pixel": 8, "denoiser": "diffusion", "denoiser_fallback": "oidn"},
+            "lights": [{"kind": "point", "position": [0, 0, 3], "intensity": 20}]}
+    if objects:
+        body["object_edits"] = [{"op": "move", "object_id": objects[0], "offset_m": [1.0, 0.0, 0.0]}]
+    rel = client.post(f"/scenes/{sid}/relight", json=body)
+    assert rel.status_code == 202, rel.text
+    bad = client.post(f"/scenes/{sid}/relight", json={**body, "object_edits": [{"op": "remove", "object_id": "nope"}]})
+    night = client.post(f"/scenes/{sid}/night", json={"frames": {"split": "test", "stop": 2}, "outputs": ["png"],
+                                                      "quality": {"rays_per_pixel": 4, "denoiser": "none"}})
+    work(settings, queues=("render",))
+    job = client.get(f"/jobs/{rel.json()['id']}").json()
+    assert job["state"] == "done", job
+    assert [s_["name"] for s_ in job["stages"]] == ["fetch", "render", "upload"]
+    arts = {a["name"]: a for a in client.get(f"/jobs/{rel.json()['id']}/artifacts").json()["items"]}
+    assert {"relit.mp4", "preview.png"} <= set(arts) and sum(n.endswith(".exr") for n in arts) == 3, sorted(arts)
+    render_stage = next(s_ for s_ in job["stages"] if s_["name"] == "render")
+    with app.state.db.session() as s:
+        m = s.scalars(select(JobStage).where(JobStage.job_id == rel.json()["id"], JobStage.name == "render")).one().metrics
+    assert render_stage["state"] == "done" and m["frames"] == 3 and m["rays_per_pixel"] == 8
+    # no diffusion model is committed yet: the request asked for a fallback, so OIDN ran and says why
+    assert m["denoiser"] == "oidn" and m["denoiser_fallback_reason"]
+    exr = _download(client, arts[next(n for n in arts if n.endswith(".exr"))]["url"], settings.data_dir / "r.exr")
+    layers = __import__("core.io", fromlist=["read_exr"]).read_exr(exr)
+    assert {"rgb", "albedo", "normal", "depth"} <= set(layers) and np.isfinite(layers["rgb"]).all()
+    failed = client.get(f"/jobs/{bad.json()['id']}").json()
+    assert failed["state"] == "failed" and "object_edits" in failed["error"] and "'nope'" in failed["error"], failed
+    nj = client.get(f"/jobs/{night.json()['id']}").json()
+    assert nj["state"] == "done", nj
+    assert {a["name"] for a in client.get(f"/jobs/{night.json()['id']}/artifacts").json()["items"]} == {"preview.png"}
+
+
+def _download(client, url, path):
+    path.write_bytes(client.get(url).content)
+    return path

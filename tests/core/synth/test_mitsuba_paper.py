@@ -13,6 +13,9 @@ from core.synth.mitsuba_backend import PinholeCamera
 from core.synth.street import Material, Part
 
 mp = pytest.importorskip("core.synth.mitsuba_paper")
+pytestmark = pytest.mark.skipif(
+    mp._find_llvm() is None and not __import__("os").environ.get("DRJIT_LIBLLVM_PATH"),
+    reason="libLLVM >= 17 not installed (scripts/setup.sh installs Debian's libllvm19 as root)")
 
 
 def _hemi(rng, n, min_cos=0.02):
