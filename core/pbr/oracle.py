@@ -447,31 +447,8 @@ def _edge_band(pts, tri_of, tris, mat, nrm, sp, n1, tris0, mat0, s: OracleSettin
 def _inset_boundaries(pts, tri_of, tris, mat, nrm, sp, n1, tris0, mat0, inset):
     """Move lattice points within ``inset * spacing`` of a boundary edge of their planar face to
     that distance (see :attr:`OracleSettings.edge_inset`)."""
-    keys0 = _plane_keys(tris0, mat0)
-    groups: dict = {}
-    for i, k in enumerate(keys0):
-        groups.setdefault(k, []).append(i)
-    # boundary edges per planar group: edges used once within the group
-    bound: dict = {}
-    for k, idx in groups.items():
-        count: dict = {}
-        for i in idx:
-            for a, b, c in ((0, 1, 2), (1, 2, 0), (2, 0, 1)):
-                pa, pb = tuple(np.round(tris0[i, a] * 1e5).astype(np.int64)), tuple(np.round(tris0[i, b] * 1e5).astype(np.int64))
-                e = (pa, pb) if pa < pb else (pb, pa)
-                n_, _third = count.get(e, (0, None))
-                count[e] = (n_ + 1, tris0[i, c])
-        bound[k] = [(np.array(e[0], np.float64) / 1e5, np.array(e[1], np.float64) / 1e5, third)
-                    for e, (c, third) in count.items() if c == 1]
+    bound, group_inr = _boundary_edges(tris0, mat0)
     keys = _plane_keys(tris, mat)
-    # inradius of every original triangle: narrow faces (poles, wheels) are left alone
-    e1 = tris0[:, 1] - tris0[:, 0]
-    e2 = tris0[:, 2] - tris0[:, 0]
-    e3 = tris0[:, 2] - tris0[:, 1]
-    area2 = np.linalg.norm(np.cross(e1, e2), axis=-1)
-    perim = np.linalg.norm(e1, axis=-1) + np.linalg.norm(e2, axis=-1) + np.linalg.norm(e3, axis=-1)
-    inr = area2 / np.maximum(perim, 1e-12)
-    group_inr = {k: float(max(inr[i] for i in idx)) for k, idx in groups.items()}
     out = pts.copy()
     lattice = n1[tri_of] > 0
     by_key: dict = {}
@@ -480,23 +457,14 @@ def _inset_boundaries(pts, tri_of, tris, mat, nrm, sp, n1, tris0, mat0, inset):
             by_key.setdefault(keys[t], []).append(j)
     for k, idx in by_key.items():
         edges = bound.get(k)
-        if edges is None or len(edges) == 0:
+        if not edges:
             continue
         idx = np.asarray(idx)
         p = out[idx]
-        nn = nrm[tri_of[idx[0]]]
         delta = inset * sp[tri_of[idx]]
         if group_inr.get(k, 0.0) < 2.0 * float(delta.max()):
-            continue
-        for a, b, third in edges:
-            e = b - a
-            L = np.linalg.norm(e)
-            if L < 1e-9:
-                continue
-            e = e / L
-            inward = np.cross(nn, e)
-            if np.dot(third - a, inward) < 0:  # the side of the triangle that owns the edge
-                inward = -inward
+            continue  # narrow faces (poles, wheels) are left alone
+        for a, e, L, inward in _edge_frames(edges, nrm[tri_of[idx[0]]]):
             rel = p - a
             along = rel @ e
             d = rel @ inward
