@@ -57,7 +57,7 @@ def _load_graph(ctx: JobContext):
     return SceneGraph.load(local), row[1]
 
 
-def _load_env(ctx: JobContext, p: RelightRequest | None, scale: float = 1.0, rotation_deg: float = 0.0):
+def _load_env(ctx: JobContext, bundle, p: RelightRequest | None, scale: float = 1.0, rotation_deg: float = 0.0):
     from core.io.envmap_file import read_envmap
     from core.pbr.envmap import EnvironmentMap
     from core.synth.generate import load_envmap
@@ -74,40 +74,36 @@ def _load_env(ctx: JobContext, p: RelightRequest | None, scale: float = 1.0, rot
     else:
         name = p.envmap_name if p is not None else None
         if name is None:  # night: the scene's own map
-            rgb = _scene_env(ctx)
+            rgb = _scene_env(bundle)
         else:
             try:
                 rgb = load_envmap(name)
-            except (FileNotFoundError, ConfigError) as e:
+            except ConfigError as e:
                 raise ConfigError(f"envmap_name: no bundled HDRI {name!r} ({e})") from e
     return EnvironmentMap(rgb * scale, rotation_deg=rotation_deg, resample_to=(512, 1024))
 
 
-def _scene_env(ctx: JobContext):
+def _scene_env(bundle):
     """The scene's own sky for the night scenario: the bundle's ground-truth environment map
     (synthetic captures ship one), else a uniform grey sky (a real capture's reconstruction holds
     only an LDR sky dome, no HDR map)."""
     import numpy as np
 
-    from core.bundle import open_bundle
     from core.io.envmap_file import read_envmap
 
-    b = open_bundle(ctx.scene_dir())
-    gt = b.manifest.ground_truth
+    gt = bundle.manifest.ground_truth
     if gt is not None:
-        return read_envmap(b.path(gt.envmap))
+        return read_envmap(bundle.path(gt.envmap))
     return np.full((256, 512, 3), 0.5, np.float32)
 
 
-def _views(ctx: JobContext, p, graph):
-    """The views of ``p.frames`` (bundle frames) or ``p.camera_path`` (new poses)."""
+def _views(b, p, graph):
+    """The views of ``p.frames`` (frames of the bundle ``b``) or ``p.camera_path`` (new poses)."""
     import numpy as np
 
-    from core.bundle import open_bundle
     from core.pbr.render import Camera
     from core.relight import View
 
-    b = open_bundle(ctx.scene_dir())
     times = graph.times.tolist()
     views = []
     if p.camera_path is not None:
@@ -152,19 +148,14 @@ def _lights(lights: list[LocalLight], graph, what: str = "lights"):
     return out
 
 
-def _render(ctx: JobContext, p, graph, env, lights, exposure_ev: float) -> None:
+def _render(ctx: JobContext, bundle, p, graph, env, lights, exposure_ev: float) -> None:
     from core.pbr.render import PBRSettings
     from core.relight import render_clip
 
-    views, fps = _views(ctx, p, graph)
+    views, fps = _views(bundle, p, graph)
     q = p.quality
     settings = PBRSettings(rays_per_pixel=q.rays_per_pixel, exposure=2.0 ** exposure_ev,
-                           reuse_visibility=len(views) > 1 and q.shadow_rays)
-    if not q.shadow_rays:  # no shadows: every Gaussian is transparent to shadow rays
-        from core.pbr.visibility import TraceSettings
-
-        settings = PBRSettings(rays_per_pixel=q.rays_per_pixel, exposure=2.0 ** exposure_ev,
-                               trace=TraceSettings(leaf_size=16, max_alpha=1e-6))
+                           shadows=q.shadow_rays, reuse_visibility=len(views) > 1)
     ctx.stage("render")
     want = [o.value if isinstance(o, OutputKind) else o for o in p.outputs]
     out = ctx.workdir / "out"
@@ -191,15 +182,18 @@ def run_relight(ctx: JobContext, p: RelightRequest) -> None:
     """Relight: another environment map (rotation, exposure), local lights, object edits."""
     from core.relight import ObjectEdit, apply_edits
 
+    from core.bundle import open_bundle
+
     ctx.stage("fetch")
+    bundle = open_bundle(ctx.scene_dir())
     graph, _ = _load_graph(ctx)
     edits = [ObjectEdit(e.op, e.object_id, e.source_object_id, tuple(e.offset_m), e.yaw_deg)
              for e in p.object_edits]
     graph = apply_edits(graph, edits, what="object_edits")
-    env = _load_env(ctx, p, rotation_deg=p.rotation_deg)
+    env = _load_env(ctx, bundle, p, rotation_deg=p.rotation_deg)
     lights = _lights(p.lights, graph)
     ctx.progress(0.05)
-    _render(ctx, p, graph, env, lights, p.exposure_ev)
+    _render(ctx, bundle, p, graph, env, lights, p.exposure_ev)
 
 
 def run_night(ctx: JobContext, p: NightRequest) -> None:
@@ -207,9 +201,12 @@ def run_night(ctx: JobContext, p: NightRequest) -> None:
     the request's lights (the reconstruction holds no lamp positions), exposure raised."""
     from core.pbr.lights import SpotLight
 
+    from core.bundle import open_bundle
+
     ctx.stage("fetch")
+    bundle = open_bundle(ctx.scene_dir())
     graph, _ = _load_graph(ctx)
-    env = _load_env(ctx, None, scale=max(p.sky_scale, 1e-6))
+    env = _load_env(ctx, bundle, None, scale=max(p.sky_scale, 1e-6))
     lights = _lights(p.lights, graph)
     if p.headlights:
         for n in graph.nodes:
@@ -220,7 +217,7 @@ def run_night(ctx: JobContext, p: NightRequest) -> None:
     if p.street_lights and not p.lights:
         ctx.stage_metrics({"note": "street_lights: the reconstruction has no lamp positions; pass them as lights"})
     ctx.progress(0.05)
-    _render(ctx, p, graph, env, lights, p.exposure_ev)
+    _render(ctx, bundle, p, graph, env, lights, p.exposure_ev)
 
 
 register(JobType("relight", QUEUE_RENDER, RelightRequest, run_relight, stages=("fetch", "render", "upload"),

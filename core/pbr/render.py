@@ -74,6 +74,9 @@ class PBRSettings:
     specular: float = 1.0
     """Scale of the BRDF's microfacet term: 1 = the paper; 0 = pure Lambert (validation against
     Lambertian ground truth)."""
+    shadows: bool = True
+    """Trace shadow rays through the Gaussians; False treats every light sample as visible (no
+    BVH is built and no visibility cache is used)."""
     normal_offset: float = 0.02
     """Shadow rays start this far along the normal (metres) so a surface does not shadow itself."""
     skip_sky: bool = True
@@ -149,7 +152,7 @@ class PBRSettings:
         for name, ok in checks.items():
             if not ok:
                 raise ConfigError(f"{name}: invalid value {getattr(self, name)!r}")
-        for name in ("skip_sky", "cull_lights", "adaptive", "reuse_visibility"):
+        for name in ("skip_sky", "cull_lights", "adaptive", "reuse_visibility", "shadows"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"{name}: expected a bool, got {getattr(self, name)!r}")
         if not isinstance(self.trace, TraceSettings):
@@ -281,11 +284,11 @@ class FrameContext:
         self.env = env
         self.settings = settings
         self.native_env = NativeEnv(env) if settings.backend == "native" else None
-        if static_tracer is None and static_gaussians is not None and static_gaussians.num > 0:
+        if static_tracer is None and static_gaussians is not None and static_gaussians.num > 0 and settings.shadows:
             static_tracer = GaussianTracer.from_gaussians(static_gaussians, settings.trace)
-        self.static_tracer = static_tracer
+        self.static_tracer = static_tracer if settings.shadows else None
         self.cache = None
-        if settings.reuse_visibility and self.native_env is not None:
+        if settings.reuse_visibility and settings.shadows and self.native_env is not None:
             self.cache = VisibilityCache(self.native_env, pool_size=settings.cache_pool,
                                          cell_px=settings.cache_cell_px, block=max(1, settings.split[0]),
                                          seed=settings.seed + 12345)
@@ -325,7 +328,7 @@ def render_pbr(gbuf, camera, env: EnvironmentMap, *, settings: PBRSettings | Non
     o = si.opacity[all_idx]
     shade = (o[:, 0] >= s.sky_opacity) if s.skip_sky else torch.ones(o.shape[0], dtype=torch.bool)
     sel = all_idx[shade]
-    tr = [t for t in ((context.static_tracer if context else None), *tracers) if t is not None]
+    tr = [t for t in ((context.static_tracer if context else None), *tracers) if t is not None] if s.shadows else []
     if len(tr) > 2:
         raise ConfigError("tracers: at most two BVHs in total (static + dynamic)")
     timings["setup"] = time.perf_counter() - t0
@@ -349,7 +352,7 @@ def render_pbr(gbuf, camera, env: EnvironmentMap, *, settings: PBRSettings | Non
                         weight=si.opacity[sel, 0], background_lum=bg, depth=si.depth[sel, 0],
                         cull_lights=s.cull_lights, cache=context.cache if context else None, fx=cam.fx,
                         threads=s.threads, ids=sel, roulette=s.roulette, cache_check=s.cache_check,
-                        cache_bvhs=1 if (context is not None and context.static_tracer is not None) else 0)
+                        cache_bvhs=1 if (tr and context is not None and context.static_tracer is not None) else 0)
         lr_sel = torch.from_numpy(res.radiance).to(dt)
         samples[shade] = torch.from_numpy(res.samples)
         counters.update(res.counters)
@@ -462,7 +465,9 @@ class ClipRenderer:
                 g = self.static
                 poses = {}
             dyn = None
-            if self.static_reuse:
+            if not self.settings.shadows:
+                pass  # every light sample is visible: no BVH
+            elif self.static_reuse:
                 n_static = self.static.num if self.static is not None else 0
                 if g.num > n_static:
                     dyn = GaussianTracer.from_gaussians(g.index(slice(n_static, None)), self.settings.trace)

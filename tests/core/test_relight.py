@@ -75,3 +75,24 @@ def test_render_clip_writes_frames_video_preview_and_lights_light(scene, tmp_pat
         render_clip(graph, env, views, tmp_path / "c", settings=s, outputs=["gif"])
     with pytest.raises(ConfigError, match="views"):
         render_clip(graph, env, [], tmp_path / "c", settings=s)
+
+
+def test_shadows_off_renders_exactly_as_without_any_tracer(scene):
+    """``PBRSettings.shadows = False`` builds no BVH and gives the no-visibility estimate."""
+    from core.pbr.render import ClipRenderer, render_pbr
+    from core.raster import rasterize_gaussians
+
+    graph, views = scene
+    env = EnvironmentMap.constant(0.5, 16, 32)
+    v = views[0]
+    off = PBRSettings(rays_per_pixel=8, threads=1, shadows=False, reuse_visibility=True)
+    r = ClipRenderer(graph, env, off)
+    assert r.context.static_tracer is None and r.context.cache is None
+    a = r.render(v.camera, time_s=v.time_s)
+    g = graph.compose(v.time_s)
+    gb = rasterize_gaussians(g, torch.as_tensor(v.camera.cam_to_world, dtype=g.dtype), v.camera.fx, v.camera.fy,
+                             v.camera.cx, v.camera.cy, v.camera.width, v.camera.height)
+    b = render_pbr(gb, v.camera, env, settings=PBRSettings(rays_per_pixel=8, threads=1))
+    np.testing.assert_allclose(a.hdr.numpy(), b.hdr.numpy(), rtol=1e-5, atol=1e-6)
+    shadowed = ClipRenderer(graph, env, PBRSettings(rays_per_pixel=8, threads=1)).render(v.camera, time_s=v.time_s)
+    assert float(shadowed.hdr.mean()) < float(a.hdr.mean())  # the box shadows the ground
