@@ -453,7 +453,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                               state="queued", params=pj, schema_version=S.SCHEMA_VERSION, attempts=1,
                               max_attempts=settings.max_attempts))
                     s.flush()
-                    for st in jt.stages:
+                    for st in jt.stages_of(params):
                         s.add(JobStage(job_id=jid, name=st))
                     if idem:
                         s.add(IdempotencyKey(tenant=p.tenant, key=idem, request_hash=fp, resource="job",

@@ -133,10 +133,10 @@ class Job(Base):
         return rq_job_id(self.id, self.attempts)
 
 
-def rq_job_id(job_id: str, attempt: int) -> str:
-    """The RQ job of one attempt: a retry is a new RQ job, so a stale attempt can never be confused
-    with the current one."""
-    return f"{job_id}-a{attempt}"
+def rq_job_id(job_id: str, attempt: int, stage: str | None = None) -> str:
+    """The RQ job of one attempt (of one stage, for chained job types): a retry is a new RQ job,
+    so a stale attempt can never be confused with the current one."""
+    return f"{job_id}-a{attempt}" + (f"-{stage}" if stage else "")
 
 
 class JobStage(Base):

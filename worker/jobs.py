@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
 
-from sqlalchemy import delete, select, update
+from sqlalchemy import delete, func, select, update
 
 from api_schemas import OutputKind, ReconstructRequest, RenderRequest
 from worker.db import Artifact, Database, Job, JobStage, Scene, get_database, utcnow
@@ -62,8 +62,14 @@ class _Progress:
 class JobContext:
     """What a job function gets: its row, a scratch directory, the store, and progress calls."""
 
-    def __init__(self, settings: Settings, db: Database, store: ArtifactStore, job: Job, workdir: Path):
+    def __init__(self, settings: Settings, db: Database, store: ArtifactStore, job: Job, workdir: Path,
+                 chain: tuple[str, int, int] | None = None):
         self.settings = settings
+        #: ``(stage, index, count)`` when this run is one stage of a chained job, else None.
+        self.chain = chain
+        #: Artifact keys of this run (a chain stage's outputs outlive a later stage's retry).
+        self.key_prefix = (f"jobs/{job.id}/{chain[0]}.a{job.attempts}" if chain
+                           else f"jobs/{job.id}/{job.attempts}")
         self.db = db
         self.store = store
         self.job = job
@@ -100,18 +106,29 @@ class JobContext:
                 self._p.stage_fraction[self._p.stage] = min(max(float(stage_fraction), 0.0), 1.0)
             self._p.dirty = True
 
-    def stage_metrics(self, metrics: dict) -> None:
-        """Replace the current stage's metrics (e.g. ``{"loss": [...]}``: lists are drawn as
-        curves on the dashboard)."""
+    def stage_progress(self, fraction: float) -> None:
+        """Report the current stage's progress in [0, 1]; the job's overall progress follows (a
+        chain's stages count equally; otherwise the stage is the whole job)."""
+        f = min(max(float(fraction), 0.0), 1.0)
+        if self.chain:
+            _, i, n = self.chain
+            self.progress((i + f) / n, stage_fraction=f)
+        else:
+            self.progress(f, stage_fraction=f)
+
+    def stage_metrics(self, metrics: dict, merge: bool = False) -> None:
+        """Replace (or with ``merge``, update) the current stage's metrics (e.g. ``{"loss":
+        [...]}``: lists are drawn as curves on the dashboard)."""
         if not self._p.stage:
             return
+        where = (JobStage.job_id == self.job.id, JobStage.name == self._p.stage)
         with self.db.session() as s:
-            s.execute(update(JobStage).where(JobStage.job_id == self.job.id, JobStage.name == self._p.stage)
-                      .values(metrics=dict(metrics)))
+            old = s.scalar(select(JobStage.metrics).where(*where)) if merge else None
+            s.execute(update(JobStage).where(*where).values(metrics={**(old or {}), **metrics}))
 
     def add_artifact(self, local_path: Path, name: str) -> None:
         """Upload a finished output file; it is listed once the job is done."""
-        key = f"jobs/{self.job.id}/{self.job.attempts}/{name}"
+        key = f"{self.key_prefix}/{name}"
         size = self.store.put_file(local_path, key)
         self._artifacts.append((name, key, size))
 
@@ -156,7 +173,11 @@ class JobContext:
             stage_fracs = dict(self._p.stage_fraction)
             self._p.dirty = False
         elapsed = time.monotonic() - self.started
-        eta = elapsed * (1 - p) / p if p > 0.01 else None
+        if self.chain:  # a chain's ETA is that of the running stage (later stages not yet timed)
+            f = stage_fracs.get(stage or "", 0.0)
+            eta = elapsed * (1 - f) / f if f > 0.01 else None
+        else:
+            eta = elapsed * (1 - p) / p if p > 0.01 else None
         with self.db.session() as s:
             s.execute(update(Job).where(Job.id == self.job.id, Job.state == "running",
                                         Job.attempts == self.job.attempts)
@@ -197,7 +218,9 @@ class JobContext:
             self._thread.join(timeout=10)
 
 
-def _claim(db: Database, job_id: str, attempt: int) -> Job | None:
+def _claim(db: Database, job_id: str, attempt: int, stage: str | None = None) -> Job | None:
+    """Compare-and-set ``queued`` -> ``running`` for this attempt (and, for a chain, only when
+    ``stage`` is its first stage not done); None when the job is not this run's to take."""
     now = utcnow()
     worker = f"{socket.gethostname()}.{os.getpid()}"
     try:
@@ -209,13 +232,21 @@ def _claim(db: Database, job_id: str, attempt: int) -> Job | None:
     except Exception:  # noqa: BLE001
         pass
     with db.session() as s:
+        if stage is not None:
+            rest = list(s.scalars(select(JobStage.name).where(JobStage.job_id == job_id, JobStage.state != "done")
+                                  .order_by(JobStage.id)))
+            if not rest or rest[0] != stage:
+                return None
         n = s.execute(update(Job).where(Job.id == job_id, Job.state == "queued", Job.attempts == attempt)
-                      .values(state="running", started_at=now, heartbeat_at=now, worker_name=worker,
-                              progress=0.0, eta_s=None, finished_at=None)).rowcount
+                      .values(state="running", started_at=func.coalesce(Job.started_at, now) if stage else now,
+                              heartbeat_at=now, worker_name=worker, eta_s=None, finished_at=None,
+                              **({} if stage else {"progress": 0.0}))).rowcount
         if not n:
             return None
-        s.execute(update(JobStage).where(JobStage.job_id == job_id)
-                  .values(state="queued", progress=0.0, started_at=None, finished_at=None))
+        reset = update(JobStage).where(JobStage.job_id == job_id)
+        if stage is not None:
+            reset = reset.where(JobStage.state != "done")
+        s.execute(reset.values(state="queued", progress=0.0, started_at=None, finished_at=None))
         return s.get(Job, job_id)
 
 
@@ -226,23 +257,30 @@ def _settle(db: Database, job: Job, **values) -> bool:
                               .values(finished_at=utcnow(), eta_s=None, **values)).rowcount)
 
 
-def run_job(job_id: str, attempt: int) -> dict:
-    """The RQ entry point (arguments are JSON). Returns a small JSON summary."""
+def run_job(job_id: str, attempt: int, stage: str | None = None) -> dict:
+    """The RQ entry point (arguments are JSON). Returns a small JSON summary. ``stage``: the
+    stage to run of a chained job (each stage is its own RQ job; see :func:`worker.queue.enqueue`)."""
     from core.errors import CoreError
 
     settings = get_settings()
     db = get_database(settings.db_url)
     store = get_store(settings.store_url, settings.artifact_store_options)
-    job = _claim(db, job_id, attempt)
+    job = _claim(db, job_id, attempt, stage)
     if job is None:
-        return {"job": job_id, "attempt": attempt, "skipped": "not queued for this attempt (stale or canceled)"}
+        return {"job": job_id, "attempt": attempt, "stage": stage,
+                "skipped": "not queued for this attempt and stage (stale or canceled)"}
     from worker.registry import REGISTRY
 
     jt = REGISTRY.get(job.type)
-    workdir = settings.data_dir / "work" / f"{job.id}.{attempt}"
+    chain = None
+    if stage is not None:
+        with db.session() as s:
+            names = list(s.scalars(select(JobStage.name).where(JobStage.job_id == job.id).order_by(JobStage.id)))
+        chain = (stage, names.index(stage), len(names))
+    workdir = settings.data_dir / "work" / (f"{job.id}.{attempt}" + (f".{stage}" if stage else ""))
     shutil.rmtree(workdir, ignore_errors=True)
     workdir.mkdir(parents=True)
-    ctx = JobContext(settings, db, store, job, workdir)
+    ctx = JobContext(settings, db, store, job, workdir, chain)
 
     def on_cancel(signum, frame):
         if ctx.canceled.is_set():
@@ -255,22 +293,40 @@ def run_job(job_id: str, attempt: int) -> dict:
     try:
         if jt is None:
             raise CoreError(f"job type {job.type!r} is not available in this build")
+        if (stage is not None) != jt.chained or (stage is not None and stage not in jt.stage_fns):
+            raise CoreError(f"job type {job.type!r} has no stage {stage!r} in this build")
         params = jt.params.model_validate(job.params)
-        jt.run(ctx, params)
+        if stage is not None:
+            ctx.stage(stage)
+            jt.stage_fns[stage](ctx, params)
+        else:
+            jt.run(ctx, params)
         ctx.check_canceled()
         ctx.stop()
+        last = chain is None or chain[1] == chain[2] - 1
+        now = utcnow()
         with db.session() as s:
+            if last:
+                values = dict(state="done", progress=1.0, finished_at=now, eta_s=None, error=None)
+            else:  # the next stage's RQ job is released by RQ when this one returns
+                values = dict(state="queued", progress=(chain[1] + 1) / chain[2], eta_s=None, worker_name=None,
+                              enqueued_at=now, heartbeat_at=now)
             n = s.execute(update(Job).where(Job.id == job.id, Job.state == "running", Job.attempts == attempt)
-                          .values(state="done", progress=1.0, finished_at=utcnow(), eta_s=None, error=None)
-                          ).rowcount
+                          .values(**values)).rowcount
             if n:
-                s.execute(delete(Artifact).where(Artifact.job_id == job.id))
+                names = [name for name, _, _ in ctx._artifacts]
+                if chain is None:
+                    s.execute(delete(Artifact).where(Artifact.job_id == job.id))
+                elif names:
+                    s.execute(delete(Artifact).where(Artifact.job_id == job.id, Artifact.name.in_(names)))
                 for name, key, size in ctx._artifacts:
                     s.add(Artifact(job_id=job.id, name=name, kind=os.path.splitext(name)[1].lstrip(".").lower(),
                                    content_type=content_type(name), size_bytes=size, storage_key=key))
-                s.execute(update(JobStage).where(JobStage.job_id == job.id, JobStage.state != "done")
-                          .values(state="done", progress=1.0, finished_at=utcnow()))
-        outcome = "done" if n else "superseded"
+                done = update(JobStage).where(JobStage.job_id == job.id, JobStage.state != "done")
+                if chain is not None:
+                    done = done.where(JobStage.name == stage)
+                s.execute(done.values(state="done", progress=1.0, finished_at=now))
+        outcome = ("done" if last else "stage_done") if n else "superseded"
     except JobCanceled:
         outcome = "canceled"
     except CoreError as e:
@@ -301,12 +357,12 @@ def run_job(job_id: str, attempt: int) -> dict:
         if main:
             signal.signal(signal.SIGUSR1, old)
         shutil.rmtree(workdir, ignore_errors=True)
-        if outcome != "done":
+        if outcome not in ("done", "stage_done"):
             try:
-                store.delete_prefix(f"jobs/{job.id}/{attempt}")
+                store.delete_prefix(ctx.key_prefix)
             except Exception as e:  # noqa: BLE001
                 log.warning("job %s: could not remove partial outputs: %s", job.id, e)
-    return {"job": job_id, "attempt": attempt, "outcome": outcome}
+    return {"job": job_id, "attempt": attempt, "stage": stage, "outcome": outcome}
 
 
 def _final_meta(outcome: str) -> None:
@@ -373,8 +429,16 @@ def run_render(ctx: JobContext, p: RenderRequest) -> None:
 register(JobType("render", QUEUE_RENDER, RenderRequest, run_render, stages=("fetch", "export", "upload")))
 
 
-#: Optimisation stages this build implements (the rest of the paper's chain lands with later work).
-RECONSTRUCT_STAGES_AVAILABLE = ("volume",)
+#: Optimisation stages this build implements, in chain order (the rest of the paper's chain,
+#: generative refinement, second volume stage and joint refinement, lands with later work).
+RECONSTRUCT_CHAIN = ("volume", "generative_refine", "volume2", "pbr", "joint")
+RECONSTRUCT_STAGES_AVAILABLE = ("volume", "pbr")
+GRAPH_ARTIFACT = "checkpoint/scene_graph.pt"
+
+
+def reconstruct_stages(p: ReconstructRequest) -> tuple[str, ...]:
+    """The requested stages in chain order (each once)."""
+    return tuple(st for st in RECONSTRUCT_CHAIN if st in p.stages)
 
 
 def reconstruct_unavailable(p: ReconstructRequest) -> str | None:
@@ -385,12 +449,22 @@ def reconstruct_unavailable(p: ReconstructRequest) -> str | None:
     if missing:
         return (f"reconstruct stages {missing} are not available in this build (available: "
                 f"{list(RECONSTRUCT_STAGES_AVAILABLE)}); ask for stages {list(RECONSTRUCT_STAGES_AVAILABLE)}")
+    if "volume" not in p.stages:
+        return ("stages: a chain without 'volume' is not available: the pbr stage solves for lighting on the "
+                "scene graph of the volume stage of its own chain")
     if p.profile not in NVS_PROFILES:
         return f"profile {p.profile!r} is not available on this build's CPU workers (available: {sorted(NVS_PROFILES)})"
     return None
 
 
-def run_reconstruct(ctx: JobContext, p: ReconstructRequest) -> None:
+def _upload_dir(ctx: JobContext, out: Path, prefix: str = "") -> None:
+    files = sorted(f for f in out.rglob("*") if f.is_file())
+    for f in files:
+        ctx.check_canceled()
+        ctx.add_artifact(f, prefix + f.relative_to(out).as_posix())
+
+
+def run_volume_stage(ctx: JobContext, p: ReconstructRequest) -> None:
     """The volume stage (LiDAR init, Gaussians fitted to the training frames, adaptive density
     control), checkpointed under the data directory so a retried attempt resumes where the killed
     one stopped. Outputs: the scene graph and sky, held-out renders, summary.json with PSNR/SSIM;
@@ -400,7 +474,6 @@ def run_reconstruct(ctx: JobContext, p: ReconstructRequest) -> None:
     from core.bundle import open_bundle
     from core.train.nvs import NVS_PROFILES, train_nvs
 
-    ctx.stage("volume")
     bundle = open_bundle(ctx.scene_dir())
     cfg = NVS_PROFILES[p.profile]
     if p.iterations_scale != 1.0:
@@ -414,26 +487,69 @@ def run_reconstruct(ctx: JobContext, p: ReconstructRequest) -> None:
     def report(it: int, total: int, rec: dict) -> None:
         ctx.check_canceled()
         losses.append(round(float(rec["loss"]), 5))
-        ctx.progress(0.95 * it / total, stage_fraction=it / total)
+        ctx.stage_progress(0.95 * it / total)
         ctx.stage_metrics({"loss": losses, "gaussians": rec["gaussians"]})
 
     summary = train_nvs(bundle, cfg, out, progress=False, log_every=max(1, cfg.iterations // 100),
                         checkpoint_dir=ckpt, checkpoint_every=max(1, cfg.iterations // 10), on_progress=report)
     ctx.stage_metrics({"loss": [round(h["loss"], 5) for h in summary["history"]], "test_psnr": summary["test_psnr"],
                        "test_ssim": summary["test_ssim"], "gaussians": summary["gaussians"]})
-    files = sorted(f for f in out.rglob("*") if f.is_file())
     previews = sorted((out / "renders").glob("*.png"))
-    for i, f in enumerate(files):
-        ctx.check_canceled()
-        ctx.add_artifact(f, f.relative_to(out).as_posix())
-        ctx.progress(0.95 + 0.05 * (i + 1) / len(files))
+    _upload_dir(ctx, out)
     if previews:
         ctx.add_artifact(previews[len(previews) // 2], "preview.png")
-    shutil.rmtree(ckpt, ignore_errors=True)  # the attempt succeeded: its resume state is not needed
+    ctx.stage_progress(1.0)
+    shutil.rmtree(ckpt, ignore_errors=True)  # the stage succeeded: its resume state is not needed
 
 
-register(JobType("reconstruct", QUEUE_TRAIN, ReconstructRequest, run_reconstruct, stages=("volume",),
-                 unavailable=reconstruct_unavailable))
+def run_pbr_stage(ctx: JobContext, p: ReconstructRequest) -> None:
+    """The PBR stage (the paper's Eq. 6, lighting only): geometry and material frozen (this
+    job's volume-stage scene graph, fetched from the artifact store), the environment map fitted
+    by the differentiable PBR pass to the training frames with a log-space prior towards the
+    physically fitted lighting estimate (``core.train.pbr_stage``). Outputs under ``lighting/``:
+    envmap.exr (the scene's own HDR sky, used by the night scenario), envmap_prior.exr,
+    preview.png, summary.json; loss curve and errors in the stage metrics."""
+    from dataclasses import replace
+
+    from core.bundle import open_bundle
+    from core.scene_graph import SceneGraph
+    from core.train.pbr_stage import PBR_STAGE_PROFILES, fit_lighting
+
+    with ctx.db.session() as s:
+        key = s.scalar(select(Artifact.storage_key).where(Artifact.job_id == ctx.job.id,
+                                                          Artifact.name == GRAPH_ARTIFACT))
+    if key is None:
+        raise LookupError(f"job {ctx.job.id}: the volume stage's {GRAPH_ARTIFACT} is not registered")
+    local = ctx.workdir / "scene_graph.pt"
+    ctx.store.get_file(key, local)
+    graph = SceneGraph.load(local)
+    bundle = open_bundle(ctx.scene_dir())
+    cfg = PBR_STAGE_PROFILES.get(p.profile, PBR_STAGE_PROFILES["quick"])
+    if p.iterations_scale != 1.0:
+        cfg = replace(cfg, iterations=max(1, round(cfg.iterations * p.iterations_scale)))
+    losses: list[float] = []
+
+    def report(it: int, total: int, rec: dict) -> None:
+        ctx.check_canceled()
+        losses.append(round(rec["loss"], 5))
+        ctx.stage_progress(0.05 + 0.9 * it / total)
+        if it % 5 == 0 or it == total:
+            ctx.stage_metrics({"loss": losses})
+
+    ctx.stage_progress(0.02)
+    out = ctx.workdir / "lighting"
+    summary = fit_lighting(graph, bundle, out, cfg, on_progress=report)
+    ctx.stage_metrics({"loss": losses, "photometric_psnr_prior": round(summary["photometric_psnr_prior"], 3),
+                       "photometric_psnr_fitted": round(summary["photometric_psnr_fitted"], 3),
+                       **{k: round(v, 3) for k, v in summary.get("ground_truth", {}).items()
+                          if isinstance(v, float)}})
+    _upload_dir(ctx, out, "lighting/")
+    ctx.stage_progress(1.0)
+
+
+register(JobType("reconstruct", QUEUE_TRAIN, ReconstructRequest, run_volume_stage, stages=RECONSTRUCT_CHAIN,
+                 unavailable=reconstruct_unavailable, stages_for=reconstruct_stages,
+                 stage_fns={"volume": run_volume_stage, "pbr": run_pbr_stage}))
 
 
 def format_ts(t: datetime | None) -> str | None:

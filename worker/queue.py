@@ -14,12 +14,13 @@ from datetime import timedelta
 
 import redis
 from rq import Queue, Worker
+from rq.job import Dependency
 from rq.job import Job as RQJob
 from rq.job import JobStatus
 from rq.serializers import JSONSerializer
 from sqlalchemy import select, update
 
-from worker.db import Database, Job, rq_job_id, utcnow
+from worker.db import Database, Job, JobStage, rq_job_id, utcnow
 from worker.settings import QUEUES, Settings
 
 log = logging.getLogger("brdf.queue")
@@ -41,19 +42,56 @@ def get_queue(name: str, conn: redis.Redis) -> Queue:
     return Queue(name, connection=conn, serializer=JSONSerializer)
 
 
-def enqueue(settings: Settings, conn: redis.Redis, job: Job) -> None:
-    """Put attempt ``job.attempts`` of ``job`` on its queue (raises redis errors)."""
-    get_queue(job.queue, conn).enqueue_call(
-        JOB_FUNC, args=(job.id, job.attempts), job_id=rq_job_id(job.id, job.attempts),
-        timeout=settings.job_timeout(job.queue), result_ttl=settings.result_ttl_s,
-        failure_ttl=settings.failure_ttl_s, description=f"{job.type} {job.id} attempt {job.attempts}")
+def pending_stages(db: Database, job_id: str) -> list[str]:
+    """The stages of a job that are not done, in chain order."""
+    with db.session() as s:
+        return list(s.scalars(select(JobStage.name).where(JobStage.job_id == job_id, JobStage.state != "done")
+                              .order_by(JobStage.id)))
+
+
+def is_chained(job: Job) -> bool:
+    from worker.registry import job_type
+
+    jt = job_type(job.type)
+    return jt is not None and jt.chained
+
+
+def current_rq_id(db: Database, job: Job) -> str:
+    """The RQ job that runs (or will run next) for ``job``'s current attempt: for a chained job,
+    the one of its first stage that is not done."""
+    if is_chained(job):
+        rest = pending_stages(db, job.id)
+        return rq_job_id(job.id, job.attempts, rest[0] if rest else None)
+    return job.rq_job_id
+
+
+def enqueue(settings: Settings, conn: redis.Redis, job: Job, db: Database) -> None:
+    """Put attempt ``job.attempts`` of ``job`` on its queue (raises redis errors). A chained job
+    (the training stages) becomes one RQ job per stage that is not done yet, each depending on
+    the previous one (``depends_on``; a dependent goes to the front of the queue when its
+    predecessor finishes, so another job's stages cannot slip between two stages of this one)."""
+    q = get_queue(job.queue, conn)
+    common = dict(timeout=settings.job_timeout(job.queue), result_ttl=settings.result_ttl_s,
+                  failure_ttl=settings.failure_ttl_s)
+    if not is_chained(job):
+        q.enqueue_call(JOB_FUNC, args=(job.id, job.attempts), job_id=rq_job_id(job.id, job.attempts),
+                       description=f"{job.type} {job.id} attempt {job.attempts}", **common)
+        return
+    prev = None
+    stages = pending_stages(db, job.id)
+    for st in stages:
+        rid = rq_job_id(job.id, job.attempts, st)
+        dep = Dependency(jobs=[prev], enqueue_at_front=True) if prev else None
+        q.enqueue_call(JOB_FUNC, args=(job.id, job.attempts, st), job_id=rid, depends_on=dep,
+                       description=f"{job.type} {job.id} stage {st} attempt {job.attempts}", **common)
+        prev = rid
 
 
 def try_enqueue(settings: Settings, db: Database, conn: redis.Redis, job: Job) -> bool:
     """Enqueue and record ``enqueued_at``; on a Redis error leave the job queued in the database
     (the reconcile loop enqueues it later) and return False."""
     try:
-        enqueue(settings, conn, job)
+        enqueue(settings, conn, job, db)
     except redis.RedisError as e:
         log.warning("enqueue of job %s failed (%s); the reconcile loop will retry", job.id, e)
         return False
@@ -73,17 +111,20 @@ def request_cancel(db: Database, conn: redis.Redis, job_id: str) -> str:
             raise KeyError(job_id)
         if job.state in ("done", "failed", "canceled"):
             return job.state
+        chained = is_chained(job)
+        rest = [s_.name for s_ in job.stages if s_.state != "done"] if chained else []
         n = s.execute(update(Job).where(Job.id == job_id, Job.state.in_(("queued", "running")))
                       .values(state="canceled", finished_at=utcnow(), error="canceled by request",
                               eta_s=None)).rowcount
-        rq_id = job.rq_job_id
+        rq_ids = [rq_job_id(job.id, job.attempts, st) for st in rest] if chained else [job.rq_job_id]
     if n:
-        try:
-            rj = RQJob.fetch(rq_id, connection=conn, serializer=JSONSerializer)
-            if rj.get_status() in (JobStatus.QUEUED, JobStatus.DEFERRED, JobStatus.SCHEDULED):
-                rj.cancel()
-        except Exception as e:  # noqa: BLE001 - Redis may be down or the job gone; the DB decides
-            log.info("cancel of job %s: RQ side not updated (%s)", job_id, e)
+        for rq_id in rq_ids:  # a chain: its deferred stages too, so none is left waiting in Redis
+            try:
+                rj = RQJob.fetch(rq_id, connection=conn, serializer=JSONSerializer)
+                if rj.get_status() in (JobStatus.QUEUED, JobStatus.DEFERRED, JobStatus.SCHEDULED):
+                    rj.cancel()
+            except Exception as e:  # noqa: BLE001 - Redis may be down or the job gone; the DB decides
+                log.info("cancel of job %s (%s): RQ side not updated (%s)", job_id, rq_id, e)
     with db.session() as s:
         return s.get(Job, job_id).state
 
@@ -123,9 +164,9 @@ def reconcile(settings: Settings, db: Database, conn: redis.Redis) -> dict[str, 
     for job in queued:
         if job.enqueued_at is not None and job.enqueued_at > grace:
             continue
-        status, err = _rq_status(conn, job.rq_job_id)
+        status, err = _rq_status(conn, current_rq_id(db, job))
         if status is None or status in ("canceled", "stopped"):
-            enqueue(settings, conn, job)
+            enqueue(settings, conn, job, db)
             with db.session() as s:
                 s.execute(update(Job).where(Job.id == job.id, Job.attempts == job.attempts)
                           .values(enqueued_at=utcnow()))

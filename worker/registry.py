@@ -13,7 +13,7 @@ the relight job when the PBR pass lands is one function and one line::
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Callable
+from typing import TYPE_CHECKING, Callable, Mapping
 
 from pydantic import BaseModel
 
@@ -35,6 +35,21 @@ class JobType:
     #: ``(session, scene_id, tenant) -> reason or None``: what the scene must have before this job
     #: can run (e.g. a finished reconstruction); the gateway answers 409 with the reason.
     precondition: Callable[[object, str, str], str | None] | None = None
+    #: A chained job type (the training stages): ``{stage name: run(ctx, params)}``. Each stage
+    #: of a job is then its own RQ job, enqueued behind the previous one with ``depends_on``; the
+    #: job's row in the database tracks the chain, and a retry resumes at the first stage that is
+    #: not done. ``run`` is unused for such a type.
+    stage_fns: Mapping[str, Callable[["JobContext", BaseModel], None]] | None = None
+    #: The stages a request asks for (chained types: e.g. the requested subset of the chain, in
+    #: chain order); default: all of :attr:`stages`.
+    stages_for: Callable[[BaseModel], tuple[str, ...]] | None = None
+
+    @property
+    def chained(self) -> bool:
+        return self.stage_fns is not None
+
+    def stages_of(self, params: BaseModel) -> tuple[str, ...]:
+        return tuple(self.stages_for(params)) if self.stages_for is not None else self.stages
 
 
 REGISTRY: dict[str, JobType] = {}

@@ -16,11 +16,11 @@ from sqlalchemy import select
 from api_schemas.v1.requests import LocalLight, NightRequest, OutputKind, RelightRequest
 from core.errors import ConfigError
 from worker.db import Artifact, Envmap, Job
-from worker.jobs import JobContext
+from worker.jobs import GRAPH_ARTIFACT, JobContext
 from worker.settings import QUEUE_RENDER
 from worker.registry import JobType, register
 
-GRAPH_ARTIFACT = "checkpoint/scene_graph.pt"
+LIGHTING_ARTIFACT = "lighting/envmap.exr"
 #: Headlights of the night scenario, in the car frame (x forward, y left, z up; metres; the
 #: tracked boxes of the bundles are centred on the car).
 HEADLIGHT_OFFSETS = ((2.2, 0.6, -0.1), (2.2, -0.6, -0.1))
@@ -57,7 +57,8 @@ def _load_graph(ctx: JobContext):
     return SceneGraph.load(local), row[1]
 
 
-def _load_env(ctx: JobContext, bundle, p: RelightRequest | None, scale: float = 1.0, rotation_deg: float = 0.0):
+def _load_env(ctx: JobContext, bundle, p: RelightRequest | None, scale: float = 1.0, rotation_deg: float = 0.0,
+              reconstruction_job: str | None = None):
     from core.io.envmap_file import read_envmap
     from core.pbr.envmap import EnvironmentMap
     from core.synth.generate import load_envmap
@@ -74,7 +75,7 @@ def _load_env(ctx: JobContext, bundle, p: RelightRequest | None, scale: float = 
     else:
         name = p.envmap_name if p is not None else None
         if name is None:  # night: the scene's own map
-            rgb = _scene_env(bundle)
+            rgb = _scene_env(bundle, ctx, reconstruction_job)
         else:
             try:
                 rgb = load_envmap(name)
@@ -83,14 +84,23 @@ def _load_env(ctx: JobContext, bundle, p: RelightRequest | None, scale: float = 
     return EnvironmentMap(rgb * scale, rotation_deg=rotation_deg, resample_to=(512, 1024))
 
 
-def _scene_env(bundle):
-    """The scene's own sky for the night scenario: the bundle's ground-truth environment map
-    (synthetic captures ship one), else a uniform grey sky (a real capture's reconstruction holds
-    only an LDR sky dome, no HDR map)."""
+def _scene_env(bundle, ctx: JobContext | None = None, reconstruction_job: str | None = None):
+    """The scene's own sky for the night scenario: the environment map the reconstruction's PBR
+    stage recovered (``lighting/envmap.exr``), else the bundle's ground-truth map (synthetic
+    captures ship one), else a uniform grey sky."""
     import numpy as np
 
     from core.io.envmap_file import read_envmap
 
+    if ctx is not None and reconstruction_job is not None:
+        with ctx.db.session() as s:
+            key = s.scalar(select(Artifact.storage_key).where(Artifact.job_id == reconstruction_job,
+                                                              Artifact.name == LIGHTING_ARTIFACT))
+        if key is not None:
+            local = ctx.workdir / "scene_envmap.exr"
+            ctx.store.get_file(key, local)
+            ctx.stage_metrics({"sky": f"recovered by the reconstruction's pbr stage ({LIGHTING_ARTIFACT})"}, merge=True)
+            return read_envmap(local)
     gt = bundle.manifest.ground_truth
     if gt is not None:
         return read_envmap(bundle.path(gt.envmap))
@@ -205,8 +215,8 @@ def run_night(ctx: JobContext, p: NightRequest) -> None:
 
     ctx.stage("fetch")
     bundle = open_bundle(ctx.scene_dir())
-    graph, _ = _load_graph(ctx)
-    env = _load_env(ctx, bundle, None, scale=max(p.sky_scale, 1e-6))
+    graph, rec_job = _load_graph(ctx)
+    env = _load_env(ctx, bundle, None, scale=max(p.sky_scale, 1e-6), reconstruction_job=rec_job)
     lights = _lights(p.lights, graph)
     if p.headlights:
         for n in graph.nodes:
@@ -215,7 +225,8 @@ def run_night(ctx: JobContext, p: NightRequest) -> None:
                                         intensity=p.headlight_intensity, color=(1.0, 0.95, 0.85), range=60.0,
                                         node=n.name, name=f"{n.name}/headlight{k}"))
     if p.street_lights and not p.lights:
-        ctx.stage_metrics({"note": "street_lights: the reconstruction has no lamp positions; pass them as lights"})
+        ctx.stage_metrics({"note": "street_lights: the reconstruction has no lamp positions; pass them as lights"},
+                          merge=True)
     ctx.progress(0.05)
     _render(ctx, bundle, p, graph, env, lights, p.exposure_ev)
 

@@ -222,8 +222,9 @@ class ReconstructRequest(Model):
 
     profile: Literal["tiny", "quick", "benchmark", "paper"] = "quick"
     stages: list[Literal["volume", "generative_refine", "volume2", "pbr", "joint"]] = Field(
-        default_factory=lambda: ["volume", "generative_refine", "volume2", "pbr", "joint"],
-        min_length=1, max_length=5)
+        default_factory=lambda: ["volume", "pbr"], min_length=1, max_length=5,
+        description="Stages to run, each its own job, in chain order: volume -> generative_refine -> volume2 -> "
+                    "pbr -> joint. This build runs volume and pbr (the default); asking for another is a 409.")
     iterations_scale: float = Field(1.0, gt=0.0, le=100.0, allow_inf_nan=False)
 
     model_config = {"json_schema_extra": {"examples": [{"profile": "quick", "stages": ["volume", "pbr"]}]}}

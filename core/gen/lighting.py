@@ -80,6 +80,8 @@ class LightingSettings:
     """Weight of the sky fit's prior residuals (relative to one observation)."""
     seed: int = 0
     """Seed of the random subsets."""
+    shadow_offset_m: float = 0.05
+    """Shadow rays of the cast-shadow cue start this far above the surface (metres)."""
 
     def __post_init__(self) -> None:
         if self.height < 8 or not (0.5 < self.saturation <= 1.0) or self.max_points < 50:
@@ -177,25 +179,30 @@ def _check_inputs(frames, poses, sky, depth, normals):
     return f, p, s, d, n
 
 
-def _shading_fit(nrm, shading, s_dir):
-    """Least squares of the Lambertian shading model S = a + c (1 + n_z) / 2 + e max(0, n . s) on
-    surface samples; returns (mean |residual|, (a, c, e)); inf when e <= 0 (no sun term)."""
+def _shading_fit(nrm, shading, s_dir, vis=None):
+    """Least squares of the Lambertian shading model S = a + c (1 + n_z) / 2 + e V max(0, n . s)
+    on surface samples (``vis``: the samples' visibility V of direction ``s_dir``, None = 1);
+    returns (mean |residual|, (a, c, e)); inf when e <= 0 (no sun term)."""
     nd = np.maximum(nrm @ s_dir, 0.0)
+    if vis is not None:
+        nd = nd * vis
     x = np.stack([np.ones_like(nd), (1.0 + nrm[:, 2]) / 2.0, nd], 1)
     coef, *_ = np.linalg.lstsq(x, shading, rcond=None)
     r = shading - x @ coef
     return (float(np.mean(np.abs(r))) if coef[2] > 0 else math.inf), coef
 
 
-def _search_sun(nrm, shading, s: LightingSettings):
-    """Coarse grid over the upper hemisphere, then two finer grids around the best residual."""
+def _search_sun(nrm, shading, s: LightingSettings, vis_of=None):
+    """Coarse grid over the upper hemisphere, then two finer grids around the best residual.
+    ``vis_of(dirs [K, 3]) -> [K, N]``: the samples' visibility of each candidate (cast shadows)."""
     step = math.radians(s.coarse_step_deg)
     el_min = math.radians(s.min_elevation_deg)
     az = np.arange(-math.pi, math.pi, step)
     el = np.arange(el_min, math.radians(88.0), step)
     a_, e_ = np.meshgrid(az, el, indexing="ij")
     cands = _sph(a_.ravel(), e_.ravel())
-    res = np.array([_shading_fit(nrm, shading, c)[0] for c in cands])
+    vis = vis_of(cands) if vis_of is not None else [None] * len(cands)
+    res = np.array([_shading_fit(nrm, shading, c, v)[0] for c, v in zip(cands, vis)])
     best = int(np.argmin(res))
     ba, be, best_res = a_.ravel()[best], e_.ravel()[best], float(res[best])
     for fine in (step / 4, step / 16):
@@ -203,7 +210,8 @@ def _search_sun(nrm, shading, s: LightingSettings):
         aa, ee = np.meshgrid(ba + da / max(math.cos(be), 0.2),
                              np.clip(be + da, el_min, math.radians(89.0)), indexing="ij")
         c2 = _sph(aa.ravel(), ee.ravel())
-        r2 = np.array([_shading_fit(nrm, shading, c)[0] for c in c2])
+        v2 = vis_of(c2) if vis_of is not None else [None] * len(c2)
+        r2 = np.array([_shading_fit(nrm, shading, c, v)[0] for c, v in zip(c2, v2)])
         b2 = int(np.argmin(r2))
         ba, be, best_res = aa.ravel()[b2], ee.ravel()[b2], float(r2[b2])
     finite = res[np.isfinite(res)]
@@ -287,7 +295,7 @@ def compose_envmap(coeffs, sun_dir, sun_irradiance, ground, height: int = 512) -
 
 def estimate_lighting(frames_ldr, cam_to_world, intrinsics, sky_masks, depth, normals, *,
                       albedo=None, exposure: float = 1.0, gamma: float = 2.2,
-                      settings: LightingSettings | None = None) -> LightingEstimate:
+                      settings: LightingSettings | None = None, visibility=None) -> LightingEstimate:
     """Fit the lighting prior (module docstring).
 
     Args:
@@ -300,6 +308,10 @@ def estimate_lighting(frames_ldr, cam_to_world, intrinsics, sky_masks, depth, no
         albedo: [T, H, W, 3] albedo of the reconstruction (strongly recommended: without it the
             shading cue sees albedo differences between surface orientations as lighting).
         exposure, gamma: the frames' tone map (bundle ``ldr``).
+        visibility: optional occluder model of the reconstruction, ``(origins [M, 3], dirs
+            [M, 3]) -> V [M]`` in [0, 1] (world, metres; e.g. a
+            :class:`core.pbr.visibility.GaussianTracer` of its Gaussians): the shading fit then
+            models cast shadows, ``e V max(0, n . s)``, for every candidate sun direction.
 
     Returns:
         :class:`LightingEstimate` (envmap 512x1024 by default).
@@ -333,11 +345,27 @@ def estimate_lighting(frames_ldr, cam_to_world, intrinsics, sky_masks, depth, no
     nn, shade = n_all[pick], shade_all[pick]
     diag["surface_samples"] = int(len(pick))
     diag["albedo_used"] = albedo is not None
+    vis_of = None
+    if visibility is not None:  # surface points (camera z-depth along each ray), lifted off the surface
+        fwd = poses[:, :3, 2]
+        centre = np.broadcast_to(poses[:, None, None, :3, 3], rays.shape)
+        zd = dep[..., None] / np.maximum(np.einsum("thwk,tk->thw", rays, fwd)[..., None], 1e-6)
+        pts = (centre + rays * zd)[surf][pick] + nn * s.shadow_offset_m
+
+        def vis_of(dirs):
+            dirs = np.asarray(dirs, np.float64).reshape(-1, 3)
+            o = np.broadcast_to(pts[None], (len(dirs),) + pts.shape).reshape(-1, 3)
+            d = np.broadcast_to(dirs[:, None], (len(dirs), len(pts), 3)).reshape(-1, 3)
+            v = np.asarray(visibility(o, d), np.float64).reshape(len(dirs), len(pts))
+            if not np.isfinite(v).all():
+                raise ConfigError("visibility: returned non-finite values")
+            return np.clip(v, 0.0, 1.0)
+    diag["cast_shadows"] = vis_of is not None
 
     # --- sun direction
     source, sun, coef = "none", np.array([0.0, 0.0, 1.0]), np.zeros(3)
     if len(pick) >= 50:
-        sun_fit, res_best, d_sh = _search_sun(nn, shade, s)
+        sun_fit, res_best, d_sh = _search_sun(nn, shade, s, vis_of)
         diag.update(d_sh)
         if math.isfinite(res_best) and d_sh["shading_contrast"] >= s.min_shading_contrast:
             sun, source = sun_fit, "shading"
@@ -345,7 +373,8 @@ def estimate_lighting(frames_ldr, cam_to_world, intrinsics, sky_masks, depth, no
     cluster = _sky_cluster(sky_dirs[sat_all], s) if sat_all.any() else None
     if cluster is not None and cluster[2] > 0:
         diag["sky_cluster_dir"] = cluster.tolist()
-        res_c = _shading_fit(nn, shade, cluster)[0] if len(pick) >= 50 else math.inf
+        res_c = (_shading_fit(nn, shade, cluster, vis_of(cluster)[0] if vis_of else None)[0]
+                 if len(pick) >= 50 else math.inf)
         diag["sky_cluster_residual"] = res_c
         best, med = diag.get("shading_residual", math.inf), diag.get("shading_residual_median", math.inf)
         if source == "none" or res_c <= best + s.sky_cue_tolerance * (med - best):
@@ -371,8 +400,9 @@ def estimate_lighting(frames_ldr, cam_to_world, intrinsics, sky_masks, depth, no
     e_sun = np.zeros(3)
     if source != "none" and albedo is not None:
         chans = rad[surf][pick] / np.maximum(alb[surf][pick], 0.02)
+        v_sun = vis_of(sun)[0] if vis_of else None
         for ch in range(3):
-            _, cf = _shading_fit(nn, chans[:, ch], sun)
+            _, cf = _shading_fit(nn, chans[:, ch], sun, v_sun)
             e_sun[ch] = max(float(cf[2]), 0.0) * math.pi
         diag["sun_irradiance_fit"] = e_sun.tolist()
     env = compose_envmap(coeffs, sun if source != "none" else None, e_sun, ground, s.height)
@@ -381,14 +411,22 @@ def estimate_lighting(frames_ldr, cam_to_world, intrinsics, sky_masks, depth, no
 
 def estimate_from_bundle(root, split: str = "train", settings: LightingSettings | None = None,
                          depth_noise_m: float = 0.0, normal_noise_deg: float = 0.0, albedo_noise: float = 0.0,
-                         use_albedo: bool = True, seed: int = 0) -> LightingEstimate:
+                         use_albedo: bool = True, seed: int = 0, occluders: str = "none") -> LightingEstimate:
     """:func:`estimate_lighting` on a bundle's frames of ``split``, with the bundle's ground-truth
     depth, normals and albedo standing in for the reconstruction (optionally perturbed: Gaussian
     depth noise in metres, normal noise in degrees, multiplicative log-normal albedo noise of std
-    ``albedo_noise`` per pixel, to measure robustness)."""
+    ``albedo_noise`` per pixel, to measure robustness).
+
+    ``occluders`` (the cast-shadow cue): ``"none"``; ``"lidar"``: Gaussians at the capture's
+    LiDAR points (every sweep, seen by a camera or not, opacity 0.9), what any reconstruction
+    starts from; ``"oracle"``: the synthetic street's ground-truth meshes as thin Gaussians
+    (:func:`core.pbr.oracle.street_scene_graph`, static parts at time 0), the stand-in for a
+    converged reconstruction.
+    """
     from core.bundle import open_bundle
 
     b = open_bundle(root, validate=False)
+    visibility = occluder_tracer(b, occluders)
     frames = sorted(b.frames(split), key=lambda fr: fr.time_index)
     if not frames:
         raise ConfigError(f"{root}: no frames in split {split!r}")
@@ -418,4 +456,41 @@ def estimate_from_bundle(root, split: str = "train", settings: LightingSettings 
     return estimate_lighting(np.stack(imgs), np.stack(poses), (cam.fx, cam.fy, cam.cx, cam.cy), np.stack(skies),
                              np.stack(deps), np.stack(nrms).astype(np.float32),
                              albedo=np.stack(albs) if use_albedo else None, exposure=m.ldr_exposure,
-                             gamma=m.ldr_gamma, settings=settings)
+                             gamma=m.ldr_gamma, settings=settings, visibility=visibility)
+
+
+def occluder_tracer(bundle, occluders: str):
+    """A shadow-ray tracer (:class:`core.pbr.visibility.GaussianTracer`) of a bundle's occluders
+    (see :func:`estimate_from_bundle`), or None for ``"none"``."""
+    from dataclasses import replace
+
+    from core.pbr.visibility import GaussianTracer, TraceSettings
+
+    if occluders == "none":
+        return None
+    if occluders == "lidar":
+        from core.train.init_lidar import LidarInitConfig, gaussians_from_lidar
+
+        g, _ = gaussians_from_lidar(bundle, replace(LidarInitConfig(), drop_unseen=False, init_opacity=0.9,
+                                                     max_background_points=150_000))
+    elif occluders == "oracle":
+        from core.gen.prepare import synth_config_of
+        from core.pbr.oracle import OracleSettings, street_scene_graph
+
+        cfg = synth_config_of(bundle)
+        graph, _, _ = street_scene_graph(cfg, (0,), settings=OracleSettings(max_spacing=1.0), budget=60_000)
+        g = graph.compose(0.0)
+    else:
+        raise ConfigError(f"occluders: must be 'none', 'lidar' or 'oracle', got {occluders!r}")
+    return numpy_visibility(GaussianTracer.from_gaussians(g.detach(), TraceSettings(leaf_size=16)))
+
+
+def numpy_visibility(tracer):
+    """``(origins [M, 3], dirs [M, 3]) -> V [M]`` on numpy arrays through a
+    :class:`core.pbr.visibility.GaussianTracer` (the ``visibility`` of :func:`estimate_lighting`)."""
+    import torch
+
+    def visibility(origins, dirs):
+        return tracer(torch.from_numpy(np.ascontiguousarray(origins, np.float32)),
+                      torch.from_numpy(np.ascontiguousarray(dirs, np.float32))).numpy()
+    return visibility

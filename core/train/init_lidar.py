@@ -121,7 +121,10 @@ def _colors(bundle: SceneBundle, pts: np.ndarray, time_indices: np.ndarray) -> t
     return cols, done
 
 
-def _make(pts, origins, cols, cfg: LidarInitConfig, dtype) -> Gaussians:
+def _make(pts, origins, cols, cfg: LidarInitConfig, dtype, exposure: float = 1.0, gamma: float = 2.2) -> Gaussians:
+    """Gaussians at the points; ``cols`` are the LDR colours seen by the cameras (the NVS colour),
+    the albedo starts at their linearised value ``cols^gamma / exposure`` (albedo is linear
+    reflectance: the gamma-encoded colour would be about twice too bright for the PBR pass)."""
     n = len(pts)
     if n == 0:
         return Gaussians.empty(dtype)
@@ -140,7 +143,7 @@ def _make(pts, origins, cols, cfg: LidarInitConfig, dtype) -> Gaussians:
     return Gaussians.from_activated(
         means=t(pts), quats=t(quats), scales=t(scales),
         opacities=t(np.full(n, cfg.init_opacity)), colors=t(np.clip(cols, 0.02, 0.98)),
-        normals=t(normals), albedo=t(np.clip(cols, 0.02, 0.98)),
+        normals=t(normals), albedo=t(np.clip(np.power(np.clip(cols, 0.0, 1.0), gamma) / exposure, 0.02, 0.98)),
         roughness=t(np.full(n, cfg.init_roughness)), metallic=t(np.full(n, cfg.init_metallic)),
     )
 
@@ -149,6 +152,7 @@ def gaussians_from_lidar(bundle: SceneBundle, cfg: LidarInitConfig = LidarInitCo
                          dtype: torch.dtype = torch.float32) -> tuple[Gaussians, dict[str, Gaussians]]:
     """(background Gaussians in world frame, {object id: Gaussians in the object frame})."""
     m = bundle.manifest
+    tone = (float(m.ldr_exposure), float(m.ldr_gamma))
     if not m.lidar:
         raise ConfigError("bundle: has no LiDAR sweeps to initialise from")
     rng = np.random.default_rng(cfg.seed)
@@ -186,7 +190,7 @@ def gaussians_from_lidar(bundle: SceneBundle, cfg: LidarInitConfig = LidarInitCo
     cols, seen = _colors(bundle, pts, tidx)
     if cfg.drop_unseen:
         pts, org, cols = pts[seen], org[seen], cols[seen]
-    background = _make(pts, org, cols, cfg, dtype)
+    background = _make(pts, org, cols, cfg, dtype, *tone)
 
     nodes: dict[str, Gaussians] = {}
     for o in m.objects:
@@ -206,5 +210,5 @@ def gaussians_from_lidar(bundle: SceneBundle, cfg: LidarInitConfig = LidarInitCo
             sel = lt == t
             pose = o.poses[int(t)]
             world[sel] = lp[sel] @ pose[:3, :3].T + pose[:3, 3]
-        nodes[o.id] = _make(lp, lo, _colors(bundle, world, lt)[0], cfg, dtype)
+        nodes[o.id] = _make(lp, lo, _colors(bundle, world, lt)[0], cfg, dtype, *tone)
     return background, nodes

@@ -315,7 +315,8 @@ def test_cancel_queued_job(client, scene_id, settings):
     ("relight", {"envmap_name": "city", "rotation_deg": 30, "lights": [
         {"kind": "point", "position": [1, 2, 3], "intensity": 50}]}),  # no reconstruction yet
     ("night", {"street_lights": True, "headlights": False}),  # no reconstruction yet
-    ("reconstruct", {"profile": "quick"}),  # the default chain: later stages have not landed
+    ("reconstruct", {"profile": "quick", "stages": ["volume", "joint"]}),  # joint refinement has not landed
+    ("reconstruct", {"profile": "quick", "stages": ["pbr"]}),  # pbr needs the volume stage in its chain
     ("reconstruct", {"profile": "paper", "stages": ["volume"]}),  # a GPU profile
 ])
 def test_unbuilt_job_types_answer_409_and_queue_nothing(client, scene_id, app, settings, path, body):

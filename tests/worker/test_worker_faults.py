@@ -161,3 +161,46 @@ def test_killed_reconstruct_resumes_from_its_checkpoint(settings, tmp_path, tiny
     summary = c.get(arts["summary.json"]["url"]).json()
     assert summary["iterations"] == 600
     assert summary["resumed_from_iteration"] >= saved > 0, summary["resumed_from_iteration"]
+
+
+def test_killed_chain_stage_is_retried_without_rerunning_finished_stages(settings, tmp_path, tiny_scene, procs):
+    """kill -9 of a worker in the second stage of a reconstruct chain (pbr): the retried attempt
+    starts at that stage (the finished volume stage and its artifacts are kept) and finishes."""
+    from sqlalchemy import select
+
+    from worker.db import Artifact, JobStage, get_database
+
+    gw, base = start_gateway(settings, tmp_path / "gateway.log")
+    procs.append(gw)
+    w1 = start_worker(settings, tmp_path / "worker1.log")
+    procs.append(w1)
+    c = api(base)
+    sid = upload(c, zip_bundle(tiny_scene, tmp_path / "tiny.zip"))
+    jid = c.post(f"/scenes/{sid}/reconstruct", json={"profile": "tiny", "stages": ["volume", "pbr"],
+                                                      "iterations_scale": 6}).json()["id"]
+
+    def in_pbr():
+        j = job(c, jid)
+        st = {s["name"]: s for s in j["stages"]}
+        return j if j["state"] == "running" and j["stage"] == "pbr" and st["pbr"]["progress"] > 0.1 else None
+
+    wait_for(in_pbr, 240, f"the pbr stage to be under way\n{w1.tail()}")
+    db = get_database(settings.db_url)
+    with db.session() as s:
+        volume_done = s.scalar(select(JobStage.finished_at).where(JobStage.job_id == jid, JobStage.name == "volume"))
+    assert volume_done is not None
+    w1.kill9()
+    w2 = start_worker(settings, tmp_path / "worker2.log")
+    procs.append(w2)
+    done = wait_for(lambda: (lambda j: j if j["state"] in ("done", "failed") else None)(job(c, jid)), 240,
+                    f"the retried chain to finish\n--- worker2:\n{w2.tail()}")
+    assert done["state"] == "done" and done["attempts"] == 2, done
+    with db.session() as s:
+        keys = dict(s.execute(select(Artifact.name, Artifact.storage_key).where(Artifact.job_id == jid)).all())
+        assert s.scalar(select(JobStage.finished_at).where(JobStage.job_id == jid, JobStage.name == "volume")) \
+            == volume_done  # not run again
+    assert f"jobs/{jid}/volume.a1/" in keys["checkpoint/scene_graph.pt"]
+    assert f"jobs/{jid}/pbr.a2/" in keys["lighting/envmap.exr"]
+    assert "volume.a2" not in " ".join(keys.values())
+    names = {a["name"] for a in c.get(f"/jobs/{jid}/artifacts").json()["items"]}
+    assert {"checkpoint/scene_graph.pt", "lighting/envmap.exr", "preview.png"} <= names

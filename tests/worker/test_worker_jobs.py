@@ -261,30 +261,51 @@ def test_service_on_postgresql(settings, scene_zip):
             assert c.app.state.db.engine.dialect.name == "postgresql"
 
 
-def test_reconstruct_volume_stage_end_to_end(client, app, settings, tiny_zip):
-    """The reconstruct job runs the real volume stage: Gaussians fitted to the frames, held-out
-    PSNR in summary.json, renders and the scene graph as artifacts, a loss curve on the stage."""
+def test_reconstruct_stage_chain_end_to_end(client, app, settings, tiny_zip):
+    """The reconstruct job is a chain of RQ jobs, one per stage, linked with ``depends_on``: the
+    real volume stage (Gaussians fitted to the frames, held-out PSNR in summary.json, renders and
+    the scene graph as artifacts, a loss curve) and then the PBR stage (the environment map fitted
+    to the frames on the volume stage's scene graph). Night renders use the recovered sky."""
     import json as _json
 
+    from rq.job import Job as RQJob
+    from rq.serializers import JSONSerializer
+
+    from worker.db import rq_job_id
+
     sid = upload(client, tiny_zip)
-    r = client.post(f"/scenes/{sid}/reconstruct", json={"profile": "tiny", "stages": ["volume"],
+    r = client.post(f"/scenes/{sid}/reconstruct", json={"profile": "tiny", "stages": ["pbr", "volume"],
                                                           "iterations_scale": 0.5})
     assert r.status_code == 202, r.text
     jid = r.json()["id"]
+    rconn = redis.Redis.from_url(settings.redis_url)
+    vol_rq = RQJob.fetch(rq_job_id(jid, 1, "volume"), connection=rconn, serializer=JSONSerializer)
+    pbr_rq = RQJob.fetch(rq_job_id(jid, 1, "pbr"), connection=rconn, serializer=JSONSerializer)
+    assert vol_rq.get_status() == "queued" and pbr_rq.get_status() == "deferred"
+    assert pbr_rq.dependency_ids == [vol_rq.id] and pbr_rq.args == [jid, 1, "pbr"]
+    assert client.get(f"/jobs/{jid}").json()["stages"][0]["name"] == "volume"  # chain order, not request order
     work(settings, queues=("train",))
     job = client.get(f"/jobs/{jid}").json()
     assert job["state"] == "done", job
-    (stage,) = job["stages"]
-    assert stage["name"] == "volume" and stage["state"] == "done"
+    assert [(st["name"], st["state"]) for st in job["stages"]] == [("volume", "done"), ("pbr", "done")]
+    assert vol_rq.get_status(refresh=True) == "finished" and pbr_rq.get_status(refresh=True) == "finished"
     arts = {a["name"]: a for a in client.get(f"/jobs/{jid}/artifacts").json()["items"]}
-    assert {"summary.json", "preview.png", "checkpoint/scene_graph.pt", "test_renders.mp4"} <= set(arts), sorted(arts)
+    assert {"summary.json", "preview.png", "checkpoint/scene_graph.pt", "test_renders.mp4", "lighting/envmap.exr",
+            "lighting/envmap_prior.exr", "lighting/preview.png", "lighting/summary.json"} <= set(arts), sorted(arts)
     summary = _json.loads(client.get(arts["summary.json"]["url"]).content)
     assert summary["iterations"] == 30 and 5 < summary["test_psnr"] < 60
+    lighting = _json.loads(client.get(arts["lighting/summary.json"]["url"]).content)
+    assert lighting["iterations"] == 15 and len(lighting["history"]) == 15
+    env = __import__("core.io.envmap_file", fromlist=["read_envmap"]).read_envmap(
+        _download(client, arts["lighting/envmap.exr"]["url"], settings.data_dir / "env.exr"))
+    assert env.shape == (512, 1024, 3) and np.isfinite(env).all() and env.min() >= 0 and env.max() > 0
     from worker.db import JobStage
 
     with app.state.db.session() as s:
-        st = s.scalars(select(JobStage).where(JobStage.job_id == jid)).one()
-        assert len(st.metrics["loss"]) == 30 and st.metrics["test_psnr"] == summary["test_psnr"]
+        st = {x.name: x for x in s.scalars(select(JobStage).where(JobStage.job_id == jid))}
+        assert len(st["volume"].metrics["loss"]) == 30 and st["volume"].metrics["test_psnr"] == summary["test_psnr"]
+        assert len(st["pbr"].metrics["loss"]) == 15
+        assert st["pbr"].metrics["photometric_psnr_fitted"] == round(lighting["photometric_psnr_fitted"], 3)
     # the resume state of a finished job is cleaned up
     assert not (settings.data_dir / "checkpoints" / jid / "volume").exists()
 
@@ -311,8 +332,8 @@ def test_reconstruct_volume_stage_end_to_end(client, app, settings, tiny_zip):
     with app.state.db.session() as s:
         m = s.scalars(select(JobStage).where(JobStage.job_id == rel.json()["id"], JobStage.name == "render")).one().metrics
     assert render_stage["state"] == "done" and m["frames"] == 3 and m["rays_per_pixel"] == 8
-    # no diffusion model is committed yet: the request asked for a fallback, so OIDN ran and says why
-    assert m["denoiser"] == "oidn" and m["denoiser_fallback_reason"]
+    # the committed diffusion model ran (models/forward_denoiser.onnx); no fallback was needed
+    assert m["denoiser"] == "diffusion" and not m.get("denoiser_fallback_reason"), m
     exr = _download(client, arts[next(n for n in arts if n.endswith(".exr"))]["url"], settings.data_dir / "r.exr")
     layers = __import__("core.io", fromlist=["read_exr"]).read_exr(exr)
     assert {"rgb", "albedo", "normal", "depth"} <= set(layers) and np.isfinite(layers["rgb"]).all()
@@ -320,6 +341,9 @@ def test_reconstruct_volume_stage_end_to_end(client, app, settings, tiny_zip):
     assert failed["state"] == "failed" and "object_edits" in failed["error"] and "'nope'" in failed["error"], failed
     nj = client.get(f"/jobs/{night.json()['id']}").json()
     assert nj["state"] == "done", nj
+    with app.state.db.session() as s:  # the night sky is the one the pbr stage recovered
+        m = s.scalars(select(JobStage).where(JobStage.job_id == night.json()["id"], JobStage.name == "fetch")).one()
+        assert "lighting/envmap.exr" in m.metrics["sky"], m.metrics
     assert {a["name"] for a in client.get(f"/jobs/{night.json()['id']}/artifacts").json()["items"]} == {"preview.png"}
 
 

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from core.conventions import envmap_solid_angles
-from core.errors import NumericalError, ShapeError
+from core.errors import ConfigError, NumericalError, ShapeError
 from core.gen import lighting as L
 
 REPO = Path(__file__).resolve().parents[3]
@@ -42,6 +42,43 @@ def test_shading_fit_recovers_sun_on_lambertian_samples():
     found, res, diag = L._search_sun(n, shade, L.LightingSettings())
     assert L.sun_direction_error_deg(found, sun) < 3.0
     assert diag["shading_contrast"] > 0.2
+
+
+def test_cast_shadows_identify_the_sun_azimuth_on_a_flat_ground():
+    """A flat ground beside a wall 8 m long and 6 m high: shading alone cannot tell the sun's
+    azimuth (n . s is the same for every azimuth), the wall's shadow can. The visibility cue
+    must find the sun."""
+    rng = np.random.default_rng(2)
+    pts = np.stack([rng.uniform(-15, 15, 3000), rng.uniform(0.3, 12, 3000), np.zeros(3000)], 1)
+    n = np.tile([0.0, 0.0, 1.0], (3000, 1))
+
+    def vis_of(dirs):
+        dirs = np.asarray(dirs, np.float64).reshape(-1, 3)
+        sx, sy, sz = dirs[:, 0:1], dirs[:, 1:2], dirs[:, 2:3]
+        t = np.where(sy < -1e-9, -pts[None, :, 1] / np.where(sy < -1e-9, sy, -1.0), 1e9)
+        hit = (t * sz < 6.0) & (np.abs(pts[None, :, 0] + t * sx) < 4.0)
+        return np.where(hit, 0.0, 1.0)
+
+    sun = L._sph(math.radians(-110.0), math.radians(35.0))
+    shade = 0.2 + 0.3 + 1.5 * vis_of(sun)[0] * max(sun[2], 0.0)
+    shade *= np.exp(rng.normal(0, 0.03, len(shade)))
+    found, _, diag = L._search_sun(n, shade, L.LightingSettings(), vis_of)
+    assert L.sun_direction_error_deg(found, sun) < 3.0
+    flat, _, _ = L._search_sun(n, shade, L.LightingSettings())  # no shadow model: azimuth unknown
+    assert L.sun_direction_error_deg(flat, sun) > L.sun_direction_error_deg(found, sun) + 10.0
+
+
+def test_oracle_occluders_find_the_sun_of_the_default_scene():
+    """With the street's meshes as occluders (cast shadows), the default scene's sun (city.exr)
+    is found within 2 degrees (measured 0.5), against 20 degrees without them."""
+    est = L.estimate_from_bundle(SCENE, "train", occluders="oracle")
+    from core.bundle import open_bundle
+
+    gt = open_bundle(SCENE, validate=False).load_envmap()
+    assert est.diagnostics["cast_shadows"] is True
+    assert L.sun_direction_error_deg(est.sun_dir, L.brightest_direction(gt)) < 2.0
+    with pytest.raises(ConfigError, match="occluders"):
+        L.estimate_from_bundle(SCENE, "train", occluders="mesh")
 
 
 def test_default_scene_estimate():

@@ -1,0 +1,65 @@
+"""The PBR stage (lighting only, the paper's Eq. 6) on a reconstruction of the tiny Mitsuba scene."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from core.bundle import open_bundle
+from core.errors import ConfigError
+from core.io.envmap_file import read_envmap
+from core.scene_graph import SceneGraph
+from core.train.nvs import NVS_PROFILES, train_nvs
+from core.train.pbr_stage import PBR_STAGE_PROFILES, PBRStageConfig, fit_lighting
+
+pytestmark = pytest.mark.mitsuba
+
+
+@pytest.fixture(scope="module")
+def reconstruction(tiny_scene, tmp_path_factory):
+    out = tmp_path_factory.mktemp("vol")
+    cfg = replace(NVS_PROFILES["tiny"], iterations=40, densify_until=30)
+    train_nvs(open_bundle(tiny_scene), cfg, out, progress=False)
+    return SceneGraph.load(out / "checkpoint" / "scene_graph.pt")
+
+
+def test_fit_improves_the_photometric_match_and_writes_outputs(tiny_scene, reconstruction, tmp_path):
+    cfg = replace(PBR_STAGE_PROFILES["tiny"], iterations=40, lr=0.05)
+    seen = []
+    s = fit_lighting(reconstruction, open_bundle(tiny_scene), tmp_path, cfg,
+                     on_progress=lambda it, n, rec: seen.append((it, n, rec["loss"])))
+    assert [x[0] for x in seen] == list(range(1, 41)) and all(x[1] == 40 for x in seen)
+    assert s["photometric_psnr_fitted"] > s["photometric_psnr_prior"] + 0.1, s
+    photo = [h["photo"] for h in s["history"]]
+    assert np.mean(photo[-8:]) < np.mean(photo[:8])
+    for name in ("envmap.exr", "envmap_prior.exr", "preview.png", "summary.json"):
+        assert (tmp_path / name).is_file(), name
+    env = read_envmap(tmp_path / "envmap.exr")
+    assert env.shape == (512, 1024, 3) and np.isfinite(env).all() and env.min() >= 0
+    assert not np.allclose(env, read_envmap(tmp_path / "envmap_prior.exr"))  # the fit moved the map
+    gt = json.loads((tmp_path / "summary.json").read_text())["ground_truth"]
+    assert {"sun_dir_err_deg_prior", "sun_dir_err_deg_fitted", "log_err_prior", "log_err_fitted"} <= set(gt)
+    assert all(np.isfinite(v) for k, v in gt.items() if k != "envmap_name")
+
+
+def test_zero_steps_return_the_prior(tiny_scene, reconstruction, tmp_path):
+    cfg = replace(PBR_STAGE_PROFILES["tiny"], iterations=0, env_height=512)
+    s = fit_lighting(reconstruction, open_bundle(tiny_scene), tmp_path, cfg)
+    assert s["history"] == [] and s["photometric_psnr_fitted"] == pytest.approx(s["photometric_psnr_prior"])
+    fitted, prior = read_envmap(tmp_path / "envmap.exr"), read_envmap(tmp_path / "envmap_prior.exr")
+    np.testing.assert_allclose(fitted, np.maximum(prior, fitted.min()), rtol=1e-4, atol=1e-6)
+
+
+@pytest.mark.parametrize("field,value", [("iterations", -1), ("pixels", 0), ("lr", 0.0), ("env_height", 4),
+                                         ("lambda_e_end", -0.1)])
+def test_bad_settings_name_the_field(field, value):
+    with pytest.raises(ConfigError, match=field):
+        PBRStageConfig(**{field: value})
+
+
+def test_wrong_settings_type(tiny_scene, reconstruction, tmp_path):
+    with pytest.raises(ConfigError, match="cfg"):
+        fit_lighting(reconstruction, open_bundle(tiny_scene), tmp_path, {"iterations": 3})
