@@ -15,14 +15,18 @@ and after every measurement is stored, since other jobs share the 2 cores):
   computed once and cached under ``benchmarks/.cache/``): PSNR and mean FLIP (LDR).
 - ``frame_64_s``: one frame at 64 rays per pixel with the default settings (MIS, no adaptive
   sampling, no visibility cache), median.
-- ``clip_24_s``: 24 frames along the camera path (cars moving), 64 rays per pixel, MIS, with
-  the static BVH built once and the cross-frame visibility cache: total wall time including
-  setup.
-- ``skips``: time with and without each skip and the PSNR of each against the converged frame:
+- ``clip_24_s``: 24 frames from a static camera (the path's first camera held still) while the
+  cars drive, 64 rays per pixel, MIS, with the static BVH built once and the cross-frame
+  visibility cache: total wall time including setup, median of ``--runs`` runs (seeds 0, 1, ...).
+  The same clip along the moving camera path is in ``machine.details.clip_camera_path_s``.
+- ``skips``: time with and without each skip (median) and the PSNR of each against the converged
+  frame (mean over the runs, which use seeds 0, 1, ...; ``within_noise``: the difference of the
+  means is at most twice its standard error, or 0.02 dB):
   ``sky`` (no shading for sky pixels), ``light_culling`` (street lights and headlights culled by
   range/cone/horizon; the converged reference adds the lights' deterministic term),
   ``static_nodes`` (static BVH built once vs rebuilt every frame; 8 frames), ``visibility_reuse``
-  (the cross-frame cache; 24-frame clip, PSNR on the last frame), ``adaptive`` (adaptive sampling).
+  (the cross-frame cache; 24-frame clips from the static camera and along the path, PSNR on
+  the last frame), ``adaptive`` (adaptive sampling).
 - ``agreement``: the oracle scene (thin Gaussians 0.5 px apart, 4x finer along face edges)
   rendered by this pass (MIS, 8x8 sub-pixels x 16 rays, box-averaged like Mitsuba's pixel filter)
   vs Mitsuba 3's direct illumination (``path``, ``max_depth = 2``, 4096 spp) of the same meshes,
@@ -47,6 +51,7 @@ import platform
 import statistics
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -97,6 +102,16 @@ def flip(ref_ldr: np.ndarray, test_ldr: np.ndarray) -> float:
     _, mean, _ = flip_evaluator.evaluate(np.ascontiguousarray(ref_ldr, np.float32),
                                          np.ascontiguousarray(test_ldr, np.float32), "LDR", applyMagma=False)
     return float(mean)
+
+
+def within_noise(p_with: list, p_without: list, floor_db: float = 0.02) -> bool:
+    """Whether two sets of PSNRs (independent seeds) differ by no more than their noise: the
+    difference of the means is at most twice its standard error (sample deviations of both sets),
+    or at most ``floor_db`` (0.02 dB: the spread of one frame's PSNR over seeds at 64 rays on this
+    scene is about 0.01 dB, and a single deterministic pair has no deviation to estimate)."""
+    d = abs(statistics.fmean(p_with) - statistics.fmean(p_without))
+    se2 = sum(statistics.variance(p) / len(p) for p in (p_with, p_without) if len(p) > 1)
+    return bool(d <= max(floor_db, 2.0 * se2 ** 0.5))
 
 
 def ldr(hdr) -> np.ndarray:
@@ -161,17 +176,20 @@ class Bench:
         h.update(repr((self.cfg, self.budget, self.ref_rays, what, ESTIMATOR_VERSION)).encode())
         return h.hexdigest()[:16]
 
-    def reference(self, frame: int) -> np.ndarray:
-        """Converged HDR frame (ref_rays rays per pixel, MIS), cached."""
+    def reference(self, frame: int, camera: int | None = None) -> np.ndarray:
+        """Converged HDR frame (ref_rays rays per pixel, MIS) at time ``frame`` seen from camera
+        ``camera`` of the path (default: the frame's own camera), cached."""
         CACHE.mkdir(parents=True, exist_ok=True)
-        path = CACHE / f"pbr_ref_{self.key(f'frame{frame}')}.npy"
+        cam = frame if camera is None else camera
+        tag = f"frame{frame}" if cam == frame else f"frame{frame}_cam{cam}"
+        path = CACHE / f"pbr_ref_{self.key(tag)}.npy"
         if path.exists():
             return np.load(path)
         t = time.perf_counter()
         r = ClipRenderer(self.graph, self.env, self.settings(rays_per_pixel=self.ref_rays, seed=999))
-        img = r.render(self.cams[frame], time_s=frame * self.cfg.frame_dt, frame_index=frame).hdr.numpy()
+        img = r.render(self.cams[cam], time_s=frame * self.cfg.frame_dt, frame_index=frame).hdr.numpy()
         np.save(path, img)
-        print(f"  reference frame {frame}: {self.ref_rays} rays/pixel in {time.perf_counter() - t:.0f} s "
+        print(f"  reference frame {frame} (camera {cam}): {self.ref_rays} rays/pixel in {time.perf_counter() - t:.0f} s "
               f"(load {load()}) -> {path.name}")
         return img
 
@@ -183,31 +201,49 @@ class Bench:
 
     # -- measurements ------------------------------------------------------------------------
     def time_frame(self, settings: PBRSettings, frame: int = 0, lights=(), static_reuse: bool = True, runs=None):
+        """Median time of ``runs`` renders of one frame, run k with seed ``settings.seed + k`` (so
+        the runs also sample the estimator's noise); returns (median s, last result, info with
+        the per-run times and results)."""
         r = ClipRenderer(self.graph, self.env, settings, lights=list(lights), static_reuse=static_reuse)
-        times, loads, res = [], [], None
+        times, loads, results = [], [], []
         for k in range(runs or self.runs):
             if r.context.cache is not None:
                 r.context.cache.clear()
+            r.settings = replace(settings, seed=settings.seed + k)
             loads.append(load())
             t = time.perf_counter()
-            res = r.render(self.cams[frame], time_s=frame * self.cfg.frame_dt, frame_index=frame)
+            results.append(r.render(self.cams[frame], time_s=frame * self.cfg.frame_dt, frame_index=frame))
             times.append(time.perf_counter() - t)
-        return statistics.median(times), res, {"times": [round(x, 3) for x in times], "load": loads,
-                                               "setup_s": round(r.setup_seconds, 3)}
+        return statistics.median(times), results[-1], {"times": [round(x, 3) for x in times], "load": loads,
+                                                       "setup_s": round(r.setup_seconds, 3), "results": results}
 
-    def time_clip(self, settings: PBRSettings, frames: int, static_reuse: bool = True):
+    def time_clip(self, settings: PBRSettings, frames: int, static_reuse: bool = True, camera: int | None = None):
+        """Render ``frames`` frames of the clip (cars moving) from scratch (renderer, static BVH
+        and cache included): along the camera path, or from the path's camera ``camera`` held
+        still (a static camera)."""
         loads = [load()]
         t = time.perf_counter()
         r = ClipRenderer(self.graph, self.env, settings, static_reuse=static_reuse)
         outs = []
         for f in range(frames):
-            outs.append(r.render(self.cams[f], time_s=f * self.cfg.frame_dt, frame_index=f))
+            outs.append(r.render(self.cams[f if camera is None else camera], time_s=f * self.cfg.frame_dt,
+                                 frame_index=f))
         total = time.perf_counter() - t
         loads.append(load())
         hits = sum(o.counters.get("cache_hits", 0) for o in outs)
         look = sum(o.counters.get("cache_lookups", 0) for o in outs)
         return total, outs, {"load": loads, "cache_hit_rate": round(hits / look, 3) if look else None,
                              "per_frame_s": [round(o.timings["total"], 3) for o in outs]}
+
+    def seeded_clips(self, settings: PBRSettings, frames: int, camera: int | None, ref_ldr: np.ndarray, **kw):
+        """``self.runs`` clips, run k with seed ``settings.seed + k``: (median s, PSNRs of the last
+        frame against ``ref_ldr``, info of the median run)."""
+        runs = [self.time_clip(replace(settings, seed=settings.seed + k), frames, camera=camera, **kw)
+                for k in range(self.runs)]
+        med = statistics.median(r[0] for r in runs)
+        info = min(runs, key=lambda r: abs(r[0] - med))[2]
+        info["totals_s"] = [round(r[0], 2) for r in runs]
+        return med, [psnr(ldr(r[1][-1].hdr), ref_ldr) for r in runs], info
 
     def runtime_vs_error(self, ref_ldr):
         rows = []
@@ -223,43 +259,51 @@ class Bench:
                       f"FLIP {row['flip']:.4f}   (runs {info['times']}, load {info['load']})")
         return rows
 
-    def skips(self, ref0, ref_last, frame_last):
+    def skips(self, ref0, ref_last, frame_last, ref_static_last):
+        """Each skip with and without, ``self.runs`` runs each with seeds 0, 1, ...: median time,
+        mean PSNR, and whether the PSNR difference is within the seeds' noise (:func:`within_noise`)."""
         out = []
-        # sky
+        ref = ldr(ref0)
         for name, kw_with, kw_without in (("sky", {}, {"skip_sky": False}),
                                           ("shadow_roulette", {}, {"roulette": 0.0}),
                                           ("adaptive", {"adaptive": True}, {})):
-            t1, r1, i1 = self.time_frame(self.settings(**kw_with))
-            t0, r0, i0 = self.time_frame(self.settings(**kw_without))
-            ref = ldr(ref0)
-            out.append(self._skip(name, t1, t0, psnr(ldr(r1.hdr), ref), psnr(ldr(r0.hdr), ref), i1, i0))
+            t1, _, i1 = self.time_frame(self.settings(**kw_with))
+            t0, _, i0 = self.time_frame(self.settings(**kw_without))
+            out.append(self._skip(name, t1, t0, [psnr(ldr(r.hdr), ref) for r in i1.pop("results")],
+                                  [psnr(ldr(r.hdr), ref) for r in i0.pop("results")], i1, i0))
         # lights culled per pixel (reference: converged environment + the lights' exact term)
         lights = self.lights()
         ref_l = ldr(ref0 + self.light_term(0))
-        t1, r1, i1 = self.time_frame(self.settings(cull_lights=True), lights=lights)
-        t0, r0, i0 = self.time_frame(self.settings(cull_lights=False), lights=lights)
-        out.append(self._skip(f"light_culling ({len(lights)} lights)", t1, t0, psnr(ldr(r1.hdr), ref_l),
-                              psnr(ldr(r0.hdr), ref_l), i1, i0))
-        # static nodes: 8 frames, static BVH once vs everything every frame
+        t1, _, i1 = self.time_frame(self.settings(cull_lights=True), lights=lights)
+        t0, _, i0 = self.time_frame(self.settings(cull_lights=False), lights=lights)
+        out.append(self._skip(f"light_culling ({len(lights)} lights)", t1, t0,
+                              [psnr(ldr(r.hdr), ref_l) for r in i1.pop("results")],
+                              [psnr(ldr(r.hdr), ref_l) for r in i0.pop("results")], i1, i0))
+        # static nodes: 8 frames, static BVH once vs everything every frame (same seed: the
+        # BVH does not change the estimate, so the images must match)
         nf = min(8, self.clip_frames)
         t1, o1, i1 = self.time_clip(self.settings(), nf, static_reuse=True)
         t0, o0, i0 = self.time_clip(self.settings(), nf, static_reuse=False)
-        out.append(self._skip(f"static_nodes ({nf} frames)", t1, t0, psnr(ldr(o1[0].hdr), ldr(ref0)),
-                              psnr(ldr(o0[0].hdr), ldr(ref0)), i1, i0))
-        # visibility reuse across the frames of the clip
-        t1, o1, i1 = self.time_clip(self.settings(reuse_visibility=True), self.clip_frames)
-        t0, o0, i0 = self.time_clip(self.settings(), self.clip_frames)
-        out.append(self._skip(f"visibility_reuse ({self.clip_frames} frames; PSNR of frame {frame_last})", t1, t0,
-                              psnr(ldr(o1[frame_last].hdr), ldr(ref_last)), psnr(ldr(o0[frame_last].hdr), ldr(ref_last)),
-                              i1, i0))
+        out.append(self._skip(f"static_nodes ({nf} frames)", t1, t0, [psnr(ldr(o1[0].hdr), ref)],
+                              [psnr(ldr(o0[0].hdr), ref)], i1, i0))
+        # visibility reuse across the frames of a clip: static camera (the clip_24_s clip) and
+        # the moving camera path, PSNR of the last frame
+        for what, camera, r_last in (("static camera", 0, ref_static_last), ("camera path", None, ref_last)):
+            t1, p1, i1 = self.seeded_clips(self.settings(reuse_visibility=True), self.clip_frames, camera, ldr(r_last))
+            t0, p0, i0 = self.seeded_clips(self.settings(), self.clip_frames, camera, ldr(r_last))
+            out.append(self._skip(f"visibility_reuse ({self.clip_frames} frames, {what}; PSNR of frame {frame_last})",
+                                  t1, t0, p1, p0, i1, i0))
         return out
 
     @staticmethod
-    def _skip(name, t1, t0, p1, p0, i1, i0):
-        row = {"name": name, "s_with": round(t1, 3), "s_without": round(t0, 3), "psnr_with": round(p1, 2),
-               "psnr_without": round(p0, 2)}
+    def _skip(name, t1, t0, p1: list, p0: list, i1, i0):
+        m1, m0 = statistics.fmean(p1), statistics.fmean(p0)
+        row = {"name": name, "s_with": round(t1, 3), "s_without": round(t0, 3), "psnr_with": round(m1, 2),
+               "psnr_without": round(m0, 2), "psnr_runs_with": [round(x, 3) for x in p1],
+               "psnr_runs_without": [round(x, 3) for x in p0], "within_noise": within_noise(p1, p0)}
         print(f"  skip {name}: {row['s_with']:.3f} s with, {row['s_without']:.3f} s without; PSNR "
-              f"{row['psnr_with']:.2f} / {row['psnr_without']:.2f} dB   (with {i1}, without {i0})")
+              f"{m1:.3f} / {m0:.3f} dB (runs {row['psnr_runs_with']} / {row['psnr_runs_without']}; within noise: "
+              f"{row['within_noise']})   (with {i1}, without {i0})")
         return row
 
     # -- agreement ---------------------------------------------------------------------------
@@ -441,6 +485,7 @@ def main(argv=None) -> int:
     ref0 = b.reference(0)
     last = b.clip_frames - 1
     ref_last = b.reference(last)
+    ref_static_last = b.reference(last, camera=0)
     ref0_ldr = ldr(ref0)
     print("runtime vs error:")
     rows = b.runtime_vs_error(ref0_ldr)
@@ -448,17 +493,21 @@ def main(argv=None) -> int:
     f64, res64, i64 = b.time_frame(b.settings(), runs=max(runs, 5 if not args.quick else 1))
     print(f"  frame_64_s = {f64:.3f} s median (runs {i64['times']}, load {i64['load']}, setup {i64['setup_s']} s); "
           f"PSNR {psnr(ldr(res64.hdr), ref0_ldr):.2f} dB; timings {res64.timings}")
-    print(f"clip of {b.clip_frames} frames (64 rays, MIS, static BVH once, visibility cache):")
-    clip_runs = [b.time_clip(b.settings(reuse_visibility=True), b.clip_frames) for _ in range(runs)]
-    c24 = statistics.median(r[0] for r in clip_runs)
-    _, outs, ic = min(clip_runs, key=lambda r: abs(r[0] - c24))
-    ic["totals_s"] = [round(r[0], 2) for r in clip_runs]
-    print(f"  clip_24_s = {c24:.2f} s median of {ic['totals_s']} (load {ic['load']}, cache hit rate {ic['cache_hit_rate']}, per frame "
-          f"{ic['per_frame_s']}); PSNR frame 0 {psnr(ldr(outs[0].hdr), ref0_ldr):.2f}, frame {last} "
-          f"{psnr(ldr(outs[last].hdr), ldr(ref_last)):.2f} dB")
+    clips = {}
+    for what, camera, r_last in (("static camera", 0, ref_static_last), ("camera path", None, ref_last)):
+        print(f"clip of {b.clip_frames} frames, {what}, cars moving (64 rays, MIS, static BVH once, visibility cache):")
+        c, p, ic = b.seeded_clips(b.settings(reuse_visibility=True), b.clip_frames, camera, ldr(r_last))
+        ic["psnr_last"] = [round(x, 3) for x in p]
+        clips[what] = (c, ic)
+        print(f"  {c:.2f} s median of {ic['totals_s']} (load {ic['load']}, cache hit rate {ic['cache_hit_rate']}, per frame "
+              f"{ic['per_frame_s']}); PSNR of frame {last}: {ic['psnr_last']} dB")
+    c24, ic = clips["static camera"]
+    print(f"  clip_24_s (static camera) = {c24:.2f} s; camera path {clips['camera path'][0]:.2f} s")
     print("skips:")
-    skips = b.skips(ref0, ref_last, last)
-    details = {"frame_64": i64, "clip": ic}
+    skips = b.skips(ref0, ref_last, last, ref_static_last)
+    i64.pop("results", None)
+    details = {"frame_64": i64, "clip": ic, "clip_camera_path": clips["camera path"][1],
+               "clip_camera_path_s": round(clips["camera path"][0], 2)}
     if not args.skip_agreement:
         agreement, d = run_agreement(b)
         details.update(d)
