@@ -75,7 +75,8 @@ def prepare(data: Path, seeds) -> None:
 
 
 def train(kind: str, data: Path, seeds, steps: int, work: Path, models: Path, batch: int, crop: int,
-          threads: int = 2, p_mean: float | None = None) -> None:
+          threads: int = 2, p_mean: float | None = None, init_from: Path | None = None,
+          lr: float | None = None) -> None:
     from core.gen.data import DataSettings
     from core.gen.train import TrainSettings, train_model
 
@@ -89,6 +90,10 @@ def train(kind: str, data: Path, seeds, steps: int, work: Path, models: Path, ba
                 checkpoint_every=100, threads=threads)
     if p_mean is not None:
         s = replace(s, p_mean=p_mean)
+    if init_from is not None:
+        s = replace(s, init_from=str(init_from))
+    if lr is not None:
+        s = replace(s, lr=lr)
     res = train_model(kind, dirs, work / kind, steps, settings=s, evaluate=True, progress=True)
     models.mkdir(parents=True, exist_ok=True)
     for p in (res.onnx_path, res.card_path):
@@ -135,6 +140,9 @@ def main(argv=None) -> int:
     ap.add_argument("--p-mean", type=float, default=None,
                     help="mean of ln sigma in training (EDM -1.2; the inverse model predicts from the frames "
                          "at high noise, so it trains higher)")
+    ap.add_argument("--init-from", type=Path, default=None,
+                    help="fine-tune: start from the weights of this exported ONNX model (same network)")
+    ap.add_argument("--lr", type=float, default=None, help="Adam learning rate (default TrainSettings.lr)")
     a = ap.parse_args(argv)
     a.data.mkdir(parents=True, exist_ok=True)
     for step in a.steps_to_run:
@@ -146,7 +154,7 @@ def main(argv=None) -> int:
             annotate_cards(a.data, a.seeds, a.models)
         else:
             train({"inverse": "inverse_gbuffer", "forward": "forward_denoiser"}[step], a.data, a.seeds, a.steps,
-                  a.work, a.models, a.batch, a.crop, a.threads, a.p_mean)
+                  a.work, a.models, a.batch, a.crop, a.threads, a.p_mean, a.init_from, a.lr)
     return 0
 
 

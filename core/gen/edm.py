@@ -268,11 +268,20 @@ def sdedit(denoiser: Denoiser, x_in: torch.Tensor, cond: Mapping[str, torch.Tens
     return _ode(_windowed(denoiser, x_in.shape[0], s), x, sigmas, c, s.solver)[0]
 
 
+#: Default sampler of :func:`generate` (the inverse model from pure noise): one Euler step from
+#: sigma_max, i.e. the model's x0 estimate at sigma_max, the posterior mean given the frames.
+#: Measured with the committed inverse model on a validation street (seed 9, sunrise at 90 deg;
+#: neither a training nor a held-out scene): 1 step albedo si-PSNR 19.17 dB, normals 10.9 deg;
+#: 2 steps 19.17 / 10.9; 4 steps 17.6 / 19.9; 8 steps 17.0 / 23.3 (the model is trained with
+#: ln sigma centred at +1.0 and is weakest at small sigma, where the later steps evaluate it).
+GENERATE_SAMPLER = SamplerSettings(steps=1)
+
+
 def generate(denoiser: Denoiser, shape: tuple[int, int, int, int], cond: Mapping[str, torch.Tensor],
              settings: SamplerSettings | None = None) -> torch.Tensor:
     """Sample a clip [T, C, H, W] from pure noise (sigma_max) with the same machinery (the inverse
-    model's G-buffer prior without an anchor)."""
-    s = settings or SamplerSettings()
+    model's G-buffer prior without an anchor); default sampler :data:`GENERATE_SAMPLER`."""
+    s = settings or GENERATE_SAMPLER
     zeros = torch.zeros(shape, dtype=torch.float32)
     _, c = _prepare(zeros, cond, "shape")
     sigmas = sigma_schedule(s.steps, s.sigma_min, s.sigma_max, s.rho)

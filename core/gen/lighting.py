@@ -82,13 +82,6 @@ class LightingSettings:
     """Seed of the random subsets."""
     shadow_offset_m: float = 0.05
     """Shadow rays of the cast-shadow cue start this far above the surface (metres)."""
-    sky_glow_weight: float = 0.0
-    """Weight of the sky-glow cue in the sun search (0: off). For a candidate sun s the unclipped
-    sky pixels' log luminance is fitted by ``a + b z + g exp(-angle(d, s) / 15 deg)`` (g > 0:
-    the sky brightens towards the sun); the search minimises ``shading residual / its median +
-    weight x sky residual / its median`` over the candidates."""
-    max_glow_samples: int = 6000
-    """Unclipped sky pixels (random subset) used by the sky-glow cue."""
 
     def __post_init__(self) -> None:
         if self.height < 8 or not (0.5 < self.saturation <= 1.0) or self.max_points < 50:
@@ -199,26 +192,9 @@ def _shading_fit(nrm, shading, s_dir, vis=None):
     return (float(np.mean(np.abs(r))) if coef[2] > 0 else math.inf), coef
 
 
-def _glow_residuals(dirs, log_lum, cands) -> np.ndarray:
-    """Sky-glow cue: mean |residual| of the least-squares fit ``log L = a + b z + g glow(s)`` of
-    sky directions ``dirs [N, 3]`` / log luminances ``[N]`` for each candidate sun ``cands [K, 3]``;
-    inf where g <= 0 (the sky does not brighten towards s)."""
-    glow = np.exp(-np.degrees(np.arccos(np.clip(np.asarray(cands) @ dirs.T, -1.0, 1.0))) / GLOW_WIDTH_DEG)  # [K, N]
-    out = np.full(len(glow), math.inf)
-    base = np.stack([np.ones(len(dirs)), dirs[:, 2]], 1)
-    for k, g in enumerate(glow):
-        x = np.concatenate([base, g[:, None]], 1)
-        coef, *_ = np.linalg.lstsq(x, log_lum, rcond=None)
-        if coef[2] > 0:
-            out[k] = float(np.mean(np.abs(log_lum - x @ coef)))
-    return out
-
-
-def _search_sun(nrm, shading, s: LightingSettings, vis_of=None, glow=None):
+def _search_sun(nrm, shading, s: LightingSettings, vis_of=None):
     """Coarse grid over the upper hemisphere, then two finer grids around the best residual.
-    ``vis_of(dirs [K, 3]) -> [K, N]``: the samples' visibility of each candidate (cast shadows).
-    ``glow``: (sky dirs [M, 3], log luminance [M]) of the sky-glow cue (``s.sky_glow_weight``)."""
-    use_glow = glow is not None and s.sky_glow_weight > 0 and len(glow[0]) >= 20
+    ``vis_of(dirs [K, 3]) -> [K, N]``: the samples' visibility of each candidate (cast shadows)."""
     step = math.radians(s.coarse_step_deg)
     el_min = math.radians(s.min_elevation_deg)
     az = np.arange(-math.pi, math.pi, step)
@@ -227,20 +203,7 @@ def _search_sun(nrm, shading, s: LightingSettings, vis_of=None, glow=None):
     cands = _sph(a_.ravel(), e_.ravel())
     vis = vis_of(cands) if vis_of is not None else [None] * len(cands)
     res = np.array([_shading_fit(nrm, shading, c, v)[0] for c, v in zip(cands, vis)])
-    finite = res[np.isfinite(res)]
-    med = float(np.median(finite)) if len(finite) else math.inf
-    res_g = _glow_residuals(glow[0], glow[1], cands) if use_glow else None
-    fin_g = res_g[np.isfinite(res_g)] if use_glow else np.zeros(0)
-    med_g = float(np.median(fin_g)) if len(fin_g) else math.inf
-
-    def score(r_sh, r_g):
-        out = r_sh / med if math.isfinite(med) and med > 0 else r_sh
-        if use_glow and math.isfinite(med_g) and med_g > 0:
-            out = out + s.sky_glow_weight * r_g / med_g
-        return out
-
-    sc = score(res, res_g)
-    best = int(np.argmin(sc))
+    best = int(np.argmin(res))
     ba, be, best_res = a_.ravel()[best], e_.ravel()[best], float(res[best])
     for fine in (step / 4, step / 16):
         da = np.arange(-4, 5) * fine
@@ -249,17 +212,14 @@ def _search_sun(nrm, shading, s: LightingSettings, vis_of=None, glow=None):
         c2 = _sph(aa.ravel(), ee.ravel())
         v2 = vis_of(c2) if vis_of is not None else [None] * len(c2)
         r2 = np.array([_shading_fit(nrm, shading, c, v)[0] for c, v in zip(c2, v2)])
-        s2 = score(r2, _glow_residuals(glow[0], glow[1], c2) if use_glow else None)
-        b2 = int(np.argmin(s2))
+        b2 = int(np.argmin(r2))
         ba, be, best_res = aa.ravel()[b2], ee.ravel()[b2], float(r2[b2])
+    finite = res[np.isfinite(res)]
     # contrast: how much better the best direction explains the shading than a typical one
-    contrast = float(1.0 - best_res / med) if len(finite) else 0.0
-    diag = {"shading_residual": best_res, "shading_residual_median": med, "shading_contrast": contrast}
-    if use_glow:
-        best_g = float(_glow_residuals(glow[0], glow[1], _sph(ba, be)[None])[0])
-        diag.update({"glow_residual": best_g, "glow_residual_median": med_g,
-                     "glow_contrast": float(1.0 - best_g / med_g) if math.isfinite(med_g) and med_g > 0 else 0.0})
-    return _sph(ba, be), best_res, diag
+    contrast = float(1.0 - best_res / np.median(finite)) if len(finite) else 0.0
+    med = float(np.median(finite)) if len(finite) else math.inf
+    return _sph(ba, be), best_res, {"shading_residual": best_res, "shading_residual_median": med,
+                                    "shading_contrast": contrast}
 
 
 def _sky_cluster(dirs_sat: np.ndarray, s: LightingSettings):
@@ -404,20 +364,11 @@ def estimate_lighting(frames_ldr, cam_to_world, intrinsics, sky_masks, depth, no
 
     # --- sun direction
     source, sun, coef = "none", np.array([0.0, 0.0, 1.0]), np.zeros(3)
-    glow = None
-    if s.sky_glow_weight > 0:
-        ok = ~sky_sat.any(-1) & (sky_dirs[:, 2] > -0.02) & (sky_rad.min(-1) > 0)
-        gi = np.flatnonzero(ok)
-        if len(gi) > s.max_glow_samples:
-            gi = rng.choice(gi, s.max_glow_samples, replace=False)
-        glow = (sky_dirs[gi], np.log(sky_rad[gi] @ np.array([0.2126, 0.7152, 0.0722])))
-        diag["glow_samples"] = int(len(gi))
     if len(pick) >= 50:
-        sun_fit, res_best, d_sh = _search_sun(nn, shade, s, vis_of, glow)
+        sun_fit, res_best, d_sh = _search_sun(nn, shade, s, vis_of)
         diag.update(d_sh)
-        contrast = max(d_sh["shading_contrast"], d_sh.get("glow_contrast", 0.0))
-        if math.isfinite(res_best) and contrast >= s.min_shading_contrast:
-            sun, source = sun_fit, "shading" if glow is None else "shading+glow"
+        if math.isfinite(res_best) and d_sh["shading_contrast"] >= s.min_shading_contrast:
+            sun, source = sun_fit, "shading"
     sat_all = sky_sat.all(-1)
     cluster = _sky_cluster(sky_dirs[sat_all], s) if sat_all.any() else None
     if cluster is not None and cluster[2] > 0:

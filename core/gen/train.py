@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from core.errors import ConfigError, NumericalError
+from core.errors import ConfigError, ModelLoadError, NumericalError
 from core.gen import contract as C
 from core.gen.data import ClipDataset, DataSettings, load_clips, split_bundles
 from core.gen.nets import UNetSettings, build_model, count_parameters, export_onnx
@@ -88,6 +88,10 @@ class TrainSettings:
     """torch intra-op threads during training (restored afterwards)."""
     unet: UNetSettings = field(default_factory=UNetSettings)
     """Network width/depth."""
+    init_from: str | None = None
+    """An exported ONNX model of the same contract and network whose weights start the training
+    (fine-tuning; the training data, held-out split and data recipe are the caller's to record).
+    Ignored when a checkpoint is resumed."""
     data: DataSettings = field(default_factory=DataSettings)
     """How bundles become tensors (forward source, held-out seeds/rotations)."""
 
@@ -194,6 +198,30 @@ def _config_key(kind: str, s: TrainSettings) -> str:
                       sort_keys=True)
 
 
+def load_onnx_weights(model: torch.nn.Module, onnx_path: str | Path) -> None:
+    """Copy the weights of an exported ONNX model into ``model`` (its initializers carry the
+    state-dict names); ModelLoadError naming the file when it cannot be read or a tensor is
+    missing or of another shape."""
+    import onnx
+    from onnx import numpy_helper
+
+    try:
+        init = {i.name: i for i in onnx.load(str(onnx_path)).graph.initializer}
+    except Exception as e:  # noqa: BLE001 - any parse failure is a load error of that file
+        raise ModelLoadError(f"{onnx_path}: cannot read the ONNX model: {e}") from None
+    sd = model.state_dict()
+    new = {}
+    for k, v in sd.items():
+        if k not in init:
+            raise ModelLoadError(f"{onnx_path}: no weight {k!r} (another network?)")
+        a = torch.from_numpy(numpy_helper.to_array(init[k]).copy())
+        if tuple(a.shape) != tuple(v.shape):
+            raise ModelLoadError(f"{onnx_path}: weight {k!r} has shape {tuple(a.shape)}, the network "
+                                 f"{tuple(v.shape)}")
+        new[k] = a.to(v.dtype)
+    model.load_state_dict(new)
+
+
 def train_model(kind: str, data_dirs, out_dir: str | Path, steps: int, *, settings: TrainSettings | None = None,
                 clips: list | None = None, export: bool = True, evaluate: bool = False,
                 progress: bool = False) -> TrainResult:
@@ -234,6 +262,8 @@ def train_model(kind: str, data_dirs, out_dir: str | Path, steps: int, *, settin
 
         torch.manual_seed(s.seed)
         model = build_model(kind, s.unet, s.sigma_data, s.frames)
+        if s.init_from:
+            load_onnx_weights(model, s.init_from)
         ema = copy.deepcopy(model).requires_grad_(False) if s.ema_decay > 0 else None
         opt = torch.optim.Adam(model.parameters(), lr=s.lr)
         rng = np.random.default_rng(s.seed)
@@ -330,14 +360,14 @@ def evaluate_model(kind: str, onnx_path: str | Path, bundle_dirs, data: DataSett
     inverse_gbuffer: sampling from noise conditioned on the frames; ``albedo_si_psnr``,
     ``roughness_rmse``, ``metallic_rmse``, ``normal_mae_deg`` over non-sky pixels (paper metrics).
     """
-    from core.gen.edm import OnnxDenoiser, SamplerSettings, flicker, generate, sdedit
+    from core.gen.edm import GENERATE_SAMPLER, OnnxDenoiser, SamplerSettings, flicker, generate, sdedit
     from core.gen.runtime import load_model
     from core.metrics import angular_error_deg, psnr, si_psnr
 
     data = data or DataSettings()
     sess = load_model(onnx_path, kind=kind, threads=threads)
     den = OnnxDenoiser(sess)
-    sampler = sampler or SamplerSettings()
+    sampler = sampler or (SamplerSettings() if kind == "forward_denoiser" else GENERATE_SAMPLER)
     kinds = ("forward",) if kind == "forward_denoiser" else ("inverse",)
     acc: dict[str, list] = {}
     for d in bundle_dirs:

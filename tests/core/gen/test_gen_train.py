@@ -75,3 +75,50 @@ def test_inverse_training_steps(clips, tmp_path):
     r = train_model("inverse_gbuffer", [SCENE], tmp_path / "inv", 30, settings=s, clips=clips)
     assert np.mean(r.losses[-8:]) < np.mean(r.losses[:8])
     assert load_model(r.onnx_path, kind="inverse_gbuffer", threads=1).info.frames == 2
+
+
+def test_fine_tuning_starts_from_the_exported_weights(tmp_path):
+    """load_onnx_weights (TrainSettings.init_from) copies an exported model's weights back into a
+    fresh network of the same shape, and names the file and weight when the network differs."""
+    import torch
+
+    from core.errors import ModelLoadError
+    from core.gen.nets import build_model, export_onnx
+    from core.gen.train import load_onnx_weights
+
+    torch.manual_seed(1)
+    src = build_model("inverse_gbuffer", TINY_NET)
+    with torch.no_grad():  # a trained network: no zero-initialised layers (the exporter merges equal tensors)
+        for p in src.parameters():
+            p.normal_(0.0, 0.1)
+    path = export_onnx(src, tmp_path / "m.onnx")
+    torch.manual_seed(2)
+    dst = build_model("inverse_gbuffer", TINY_NET)
+    assert any(not torch.equal(a, b) for a, b in zip(src.state_dict().values(), dst.state_dict().values()))
+    load_onnx_weights(dst, path)
+    for k, v in src.state_dict().items():
+        assert torch.equal(dst.state_dict()[k], v), k
+    wider = build_model("inverse_gbuffer", UNetSettings(base_channels=12, emb_dim=32, env_channels=8))
+    with pytest.raises(ModelLoadError, match=r"m\.onnx: weight '.*' has shape"):
+        load_onnx_weights(wider, path)
+    (tmp_path / "bad.onnx").write_bytes(b"not a model")
+    with pytest.raises(ModelLoadError, match=r"bad\.onnx: cannot read"):
+        load_onnx_weights(dst, tmp_path / "bad.onnx")
+
+
+def test_generate_defaults_to_one_step_posterior_mean():
+    """The inverse model's default sampler is one Euler step from sigma_max: the output is the
+    denoiser's own x0 estimate at sigma_max (one evaluation)."""
+    import torch
+
+    from core.gen.edm import GENERATE_SAMPLER, generate
+
+    calls = []
+
+    def den(x, sigma, cond):
+        calls.append(float(sigma.reshape(-1)[0]))
+        return torch.full_like(x, 0.25)
+
+    y = generate(den, (2, 9, 8, 8), {"rgb": torch.zeros(2, 3, 8, 8)})
+    assert GENERATE_SAMPLER.steps == 1 and calls == [GENERATE_SAMPLER.sigma_max]
+    assert torch.allclose(y, torch.full_like(y, 0.25), atol=1e-4)  # x - sigma (x - D) / sigma, x ~ 80 N(0, 1)
