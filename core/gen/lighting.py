@@ -82,6 +82,13 @@ class LightingSettings:
     """Seed of the random subsets."""
     shadow_offset_m: float = 0.05
     """Shadow rays of the cast-shadow cue start this far above the surface (metres)."""
+    max_metallic: float = 0.1
+    """With ``metallic`` given: surface samples above it are left out of the shading fit (a
+    metal's radiance is a reflection of its surroundings, not albedo x irradiance). Measured with
+    ``min_roughness`` on 10 sunny development streets (s100-s111 without the two overcast ones,
+    true meshes as occluders): mean sun error 28.6 -> 22.1 deg, median 29.7 -> 23.2."""
+    min_roughness: float = 0.5
+    """With ``roughness`` given: samples below it are left out (glossy highlights)."""
 
     def __post_init__(self) -> None:
         if self.height < 8 or not (0.5 < self.saturation <= 1.0) or self.max_points < 50:
@@ -295,7 +302,8 @@ def compose_envmap(coeffs, sun_dir, sun_irradiance, ground, height: int = 512) -
 
 def estimate_lighting(frames_ldr, cam_to_world, intrinsics, sky_masks, depth, normals, *,
                       albedo=None, exposure: float = 1.0, gamma: float = 2.2,
-                      settings: LightingSettings | None = None, visibility=None) -> LightingEstimate:
+                      settings: LightingSettings | None = None, visibility=None, roughness=None,
+                      metallic=None) -> LightingEstimate:
     """Fit the lighting prior (module docstring).
 
     Args:
@@ -312,6 +320,9 @@ def estimate_lighting(frames_ldr, cam_to_world, intrinsics, sky_masks, depth, no
             [M, 3]) -> V [M]`` in [0, 1] (world, metres; e.g. a
             :class:`core.pbr.visibility.GaussianTracer` of its Gaussians): the shading fit then
             models cast shadows, ``e V max(0, n . s)``, for every candidate sun direction.
+        roughness, metallic: [T, H, W] (or [T, H, W, 1]) of the reconstruction, optional: glossy
+            and metallic pixels (``settings.min_roughness`` / ``max_metallic``) are left out of
+            the shading fit.
 
     Returns:
         :class:`LightingEstimate` (envmap 512x1024 by default).
@@ -333,12 +344,20 @@ def estimate_lighting(frames_ldr, cam_to_world, intrinsics, sky_masks, depth, no
 
     # --- surface samples for the shading fit: shading = radiance / albedo (Lambert: E / pi)
     surf = (~sky) & (dep > 0) & ~sat.any(-1) & (np.linalg.norm(nrm, axis=-1) > 0.5)
+    for name, arr, keep in (("roughness", roughness, lambda a: a >= s.min_roughness),
+                            ("metallic", metallic, lambda a: a <= s.max_metallic)):
+        if arr is not None:
+            a = require_finite_np(np.asarray(arr, np.float32), name)
+            if a.size != t * h * w:
+                raise ShapeError(f"{name}: expected [{t}, {h}, {w}], got {a.shape}")
+            surf &= keep(a.reshape(t, h, w))
     if albedo is not None:
         alb = np.asarray(albedo, np.float64).reshape(t, h, w, 3)
         surf &= alb.mean(-1) > 0.05
         shade_all = (rad[surf] / np.maximum(alb[surf], 0.02)).mean(-1)
     else:  # no albedo: luminance only (albedo variation then biases the fit, see module doc)
         shade_all = rad[surf] @ np.array([0.2126, 0.7152, 0.0722])
+    diag["surface_pixels"] = int(surf.sum())
     n_all = _unit(nrm[surf])
     idx = np.flatnonzero(np.ones(len(n_all), bool))
     pick = idx if len(idx) <= s.max_points else rng.choice(idx, s.max_points, replace=False)
@@ -411,9 +430,10 @@ def estimate_lighting(frames_ldr, cam_to_world, intrinsics, sky_masks, depth, no
 
 def estimate_from_bundle(root, split: str = "train", settings: LightingSettings | None = None,
                          depth_noise_m: float = 0.0, normal_noise_deg: float = 0.0, albedo_noise: float = 0.0,
-                         use_albedo: bool = True, seed: int = 0, occluders: str = "none") -> LightingEstimate:
+                         use_albedo: bool = True, seed: int = 0, occluders: str = "none",
+                         use_materials: bool = True) -> LightingEstimate:
     """:func:`estimate_lighting` on a bundle's frames of ``split``, with the bundle's ground-truth
-    depth, normals and albedo standing in for the reconstruction (optionally perturbed: Gaussian
+    depth, normals, albedo (and, with ``use_materials``, roughness and metallic) standing in for the reconstruction (optionally perturbed: Gaussian
     depth noise in metres, normal noise in degrees, multiplicative log-normal albedo noise of std
     ``albedo_noise`` per pixel, to measure robustness).
 
@@ -432,7 +452,7 @@ def estimate_from_bundle(root, split: str = "train", settings: LightingSettings 
         raise ConfigError(f"{root}: no frames in split {split!r}")
     cam = b.camera(frames[0])
     rng = np.random.default_rng(seed)
-    imgs, poses, skies, deps, nrms, albs = [], [], [], [], [], []
+    imgs, poses, skies, deps, nrms, albs, rough, metal = [], [], [], [], [], [], [], []
     for fr in frames:
         gt = b.load_ground_truth(fr)
         imgs.append(b.load_image(fr))
@@ -452,11 +472,15 @@ def estimate_from_bundle(root, split: str = "train", settings: LightingSettings 
         if albedo_noise > 0:
             al = np.clip(al * np.exp(rng.normal(0, albedo_noise, al.shape[:2] + (1,))), 0, 1)
         albs.append(al)
+        rough.append(gt["roughness"][..., 0])
+        metal.append(gt["metallic"][..., 0])
     m = b.manifest
     return estimate_lighting(np.stack(imgs), np.stack(poses), (cam.fx, cam.fy, cam.cx, cam.cy), np.stack(skies),
                              np.stack(deps), np.stack(nrms).astype(np.float32),
                              albedo=np.stack(albs) if use_albedo else None, exposure=m.ldr_exposure,
-                             gamma=m.ldr_gamma, settings=settings, visibility=visibility)
+                             gamma=m.ldr_gamma, settings=settings, visibility=visibility,
+                             roughness=np.stack(rough) if use_materials else None,
+                             metallic=np.stack(metal) if use_materials else None)
 
 
 def occluder_tracer(bundle, occluders: str):

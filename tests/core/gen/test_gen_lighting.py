@@ -74,6 +74,10 @@ def test_oracle_occluders_find_the_sun_of_the_default_scene():
     est = L.estimate_from_bundle(SCENE, "train", occluders="oracle")
     from core.bundle import open_bundle
 
+    # glossy and metallic pixels (use_materials) are left out of the shading fit
+    plain = L.estimate_from_bundle(SCENE, "train", use_materials=False)
+    assert 0 < est.diagnostics["surface_pixels"] < plain.diagnostics["surface_pixels"]
+
     gt = open_bundle(SCENE, validate=False).load_envmap()
     assert est.diagnostics["cast_shadows"] is True
     assert L.sun_direction_error_deg(est.sun_dir, L.brightest_direction(gt)) < 2.0
@@ -107,6 +111,12 @@ def test_bad_inputs():
     normals = np.zeros((t, h, w, 3), np.float32)
     with pytest.raises(ShapeError, match="sky_masks"):
         L.estimate_lighting(frames, poses, (10, 10, 6, 4), sky[:, :4], depth, normals)
+    with pytest.raises(ShapeError, match="roughness"):
+        L.estimate_lighting(frames, poses, (10, 10, 6, 4), sky, depth, normals, roughness=np.ones((t, h, w - 1)))
+    metal = np.zeros((t, h, w, 1), np.float32)
+    metal[1, 2, 3] = np.inf
+    with pytest.raises(NumericalError, match="metallic"):
+        L.estimate_lighting(frames, poses, (10, 10, 6, 4), sky, depth, normals, metallic=metal)
     frames[0, 0, 0, 0] = np.nan
     with pytest.raises(NumericalError, match="frames"):
         L.estimate_lighting(frames, poses, (10, 10, 6, 4), sky, depth, normals)
