@@ -14,10 +14,15 @@ What it measures
                            PBR inputs under ``<scene>/derived/pbr`` (or ``--degrade`` for the
                            synthetic Monte-Carlo degradation, reported as such).
     oidn                   PSNR of a Monte-Carlo-degraded frame of the default scene before/after OIDN.
+    onnx_parity_max_abs    per committed model: max |onnxruntime - PyTorch| on 3 random inputs of
+                           its contract, PyTorch rebuilt from the file's weights.
+    inverse.*              held-out G-buffer metrics of the inverse model (one-step sampler,
+                           :data:`core.gen.edm.GENERATE_SAMPLER`), non-sky pixels.
     lighting               sun direction error (deg) and log-space error of the physically fitted
                            prior on each scene (ground-truth geometry/albedo stand in for the
-                           reconstruction; cast shadows traced through the ground-truth meshes as
-                           thin Gaussians; without shadows and with LiDAR-point occluders per scene).
+                           reconstruction, glossy and metallic pixels left out; cast shadows traced
+                           through the ground-truth meshes as thin Gaussians; without shadows and
+                           with LiDAR-point occluders per scene).
 Every result records the machine (cpu count, load average) and the mode.
 """
 
@@ -68,6 +73,37 @@ def forward_speed(threads: int, runs: int, model_path: Path | None) -> dict:
     return {"s_per_frame": float(np.median(times)), "runs": times, "steps": 8, "solver": "euler",
             "resolution": [320, 213], "threads": threads, "weights": "trained" if trained else "random",
             "model": str(model_path)}
+
+
+def onnx_parity(models: Path, threads: int, runs: int = 3) -> dict:
+    """Max |onnxruntime - PyTorch| of each committed model on random inputs of its contract
+    (64x96, seeds 0..runs-1), the PyTorch network rebuilt from the file's own weights
+    (:func:`core.gen.train.load_onnx_weights`) with the card's architecture."""
+    import torch
+
+    from core.gen.nets import UNetSettings, build_model, example_inputs
+    from core.gen.runtime import load_model
+    from core.gen.train import load_onnx_weights
+
+    out = {}
+    for kind in ("forward_denoiser", "inverse_gbuffer"):
+        path = models / f"{kind}.onnx"
+        if not path.is_file():
+            continue
+        net = json.loads((models / f"{kind}.card.json").read_text())["network"]
+        u = dict(net["unet"], channel_mult=tuple(net["unet"]["channel_mult"]))
+        m = build_model(kind, UNetSettings(**u), net["sigma_data"], net["frames"]).eval()
+        load_onnx_weights(m, path)
+        sess = load_model(path, kind=kind, threads=threads)
+        worst = 0.0
+        for seed in range(runs):
+            x = example_inputs(kind, 1, 1, 64, 96, seed=seed)
+            with torch.no_grad():
+                ref = m(**x).numpy()
+            got = next(iter(sess.run(**{k: v.numpy() for k, v in x.items()}).values()))
+            worst = max(worst, float(np.abs(got - ref).max()))
+        out[kind] = worst
+    return out
 
 
 def oidn_gain(threads: int) -> dict:
@@ -213,6 +249,7 @@ def main(argv=None) -> int:
                          "psnr_oidn": None, "flip_pbr": None, "flip_diffusion": None, "flip_oidn": None,
                          "flicker_pbr": None, "flicker_diffusion": None}
     result["oidn"] = oidn_gain(a.threads)
+    result["onnx_parity_max_abs"] = onnx_parity(a.models, a.threads)
     result["lighting"] = lighting(scenes) if not a.skip_lighting else None
     if not a.quick and a.scenes:
         fwd = a.models / "forward_denoiser.onnx"
