@@ -6,11 +6,14 @@ Steps (each skips what is already done, so the script resumes after an interrupt
    ground truth) for seeds ``--seeds`` (default 100-111), HDRIs cycled over city, sunset, forest,
    courtyard, sunrise, rotations from {0, 60, ..., 300} degrees; and the held-out scenes (seeds
    7 and 8, city and sunset at rotations 45 and 135 degrees: seeds and rotations never used in
-   training) under ``--data``.
+   training), and the validation streets ``v9``/``v10`` (sunrise at 90, forest at 210 degrees:
+   model and sampler choices are made on these, never on the held-out ones) under ``--data``.
 2. ``prepare``: the forward model's inputs, PBR renders of perturbed oracle scenes at 16 rays per
    pixel (``core.gen.prepare``), for every scene.
 3. ``inverse`` / ``forward``: train that model for ``--steps`` steps (``core.gen.train``; resumes
-   from its checkpoint), export ``models/<kind>.onnx`` and its model card with held-out metrics.
+   from its checkpoint; ``--init-from`` fine-tunes an exported model), export
+   ``models/<kind>.onnx`` and its model card with held-out metrics.
+4. ``validate``: the inverse model's metrics on the validation streets.
 
 Usage::
 
@@ -38,6 +41,8 @@ sys.path.insert(0, str(REPO))
 HDRIS = ("city", "sunset", "forest", "courtyard", "sunrise")
 TRAIN_ROTATIONS = (0.0, 60.0, 120.0, 180.0, 240.0, 300.0)
 HELD_OUT = ((7, "city", 45.0), (8, "sunset", 135.0))
+#: Validation streets (model and sampler choices): neither training seeds/rotations nor held-out.
+VALIDATION = ((9, "sunrise", 90.0), (10, "forest", 210.0))
 
 
 def scene_plan(seeds) -> list[tuple[str, int, str, float]]:
@@ -52,7 +57,7 @@ def scene_plan(seeds) -> list[tuple[str, int, str, float]]:
 def generate(data: Path, seeds) -> None:
     from core.synth import generate_scene, profile
 
-    for name, seed, env, rot in scene_plan(seeds):
+    for name, seed, env, rot in scene_plan(seeds) + [(f"v{s}", s, e, r) for s, e, r in VALIDATION]:
         root = data / name
         if (root / "bundle.json").is_file():
             continue
@@ -102,6 +107,22 @@ def train(kind: str, data: Path, seeds, steps: int, work: Path, models: Path, ba
                       "onnx": str(models / res.onnx_path.name)}, indent=1), flush=True)
 
 
+def validate(data: Path, models: Path, threads: int = 2) -> dict:
+    """Metrics of ``models/inverse_gbuffer.onnx`` (default sampler) on the validation streets."""
+    from core.gen.data import DataSettings
+    from core.gen.train import evaluate_model
+
+    out = {}
+    for seed, _, _ in VALIDATION:
+        root = data / f"v{seed}"
+        if not (root / "bundle.json").is_file():
+            raise SystemExit(f"missing validation street {root} (run the generate step first)")
+        out[f"v{seed}"] = evaluate_model("inverse_gbuffer", models / "inverse_gbuffer.onnx", [root],
+                                         DataSettings(forward_source="pbr"), threads=threads)
+    print(json.dumps(out, indent=1), flush=True)
+    return out
+
+
 def annotate_cards(data: Path, seeds, models: Path) -> None:
     """Add the data recipe to the model cards: every scene's generator seed, HDRI and rotation
     (read from its bundle.json), the split, and the commands that rebuild the data and models."""
@@ -128,7 +149,7 @@ def annotate_cards(data: Path, seeds, models: Path) -> None:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("steps_to_run", nargs="+", choices=["generate", "prepare", "inverse", "forward", "cards"])
+    ap.add_argument("steps_to_run", nargs="+", choices=["generate", "prepare", "inverse", "forward", "cards", "validate"])
     ap.add_argument("--data", type=Path, default=REPO / "scenes" / "gen", help="scene directory")
     ap.add_argument("--work", type=Path, default=REPO / "runs" / "gen", help="checkpoints")
     ap.add_argument("--models", type=Path, default=REPO / "models")
@@ -150,6 +171,8 @@ def main(argv=None) -> int:
             generate(a.data, a.seeds)
         elif step == "prepare":
             prepare(a.data, a.seeds)
+        elif step == "validate":
+            validate(a.data, a.models, a.threads)
         elif step == "cards":
             annotate_cards(a.data, a.seeds, a.models)
         else:
