@@ -235,10 +235,10 @@ class Bench:
         return total, outs, {"load": loads, "cache_hit_rate": round(hits / look, 3) if look else None,
                              "per_frame_s": [round(o.timings["total"], 3) for o in outs]}
 
-    def seeded_clips(self, settings: PBRSettings, frames: int, camera: int | None, ref_ldr: np.ndarray, **kw):
+    def seeded_clips(self, settings: PBRSettings, frames: int, camera: int | None, ref_ldr: np.ndarray):
         """``self.runs`` clips, run k with seed ``settings.seed + k``: (median s, PSNRs of the last
         frame against ``ref_ldr``, info of the median run)."""
-        runs = [self.time_clip(replace(settings, seed=settings.seed + k), frames, camera=camera, **kw)
+        runs = [self.time_clip(replace(settings, seed=settings.seed + k), frames, camera=camera)
                 for k in range(self.runs)]
         med = statistics.median(r[0] for r in runs)
         info = min(runs, key=lambda r: abs(r[0] - med))[2]

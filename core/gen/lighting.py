@@ -433,9 +433,10 @@ def estimate_from_bundle(root, split: str = "train", settings: LightingSettings 
                          use_albedo: bool = True, seed: int = 0, occluders: str = "none",
                          use_materials: bool = True) -> LightingEstimate:
     """:func:`estimate_lighting` on a bundle's frames of ``split``, with the bundle's ground-truth
-    depth, normals, albedo (and, with ``use_materials``, roughness and metallic) standing in for the reconstruction (optionally perturbed: Gaussian
-    depth noise in metres, normal noise in degrees, multiplicative log-normal albedo noise of std
-    ``albedo_noise`` per pixel, to measure robustness).
+    depth, normals, albedo (and, with ``use_materials``, roughness and metallic) standing in for
+    the reconstruction (optionally perturbed: Gaussian depth noise in metres, normal noise in
+    degrees, multiplicative log-normal albedo noise of std ``albedo_noise`` per pixel, to measure
+    robustness).
 
     ``occluders`` (the cast-shadow cue): ``"none"``; ``"lidar"``: Gaussians at the capture's
     LiDAR points (every sweep, seen by a camera or not, opacity 0.9), what any reconstruction

@@ -131,6 +131,20 @@ def test_cancel_running_job_in_forking_worker(settings, tmp_path, long_zip, scen
     assert took < 30, f"the canceled job kept the worker busy for {took:.0f} s"
 
 
+def _reconstruct_on_one_worker(settings, tmp_path, tiny_scene, procs, stages, iterations_scale):
+    """A gateway and one worker; the tiny scene uploaded and a reconstruct of ``stages`` queued:
+    (API client, job id, the worker process)."""
+    gw, base = start_gateway(settings, tmp_path / "gateway.log")
+    procs.append(gw)
+    w1 = start_worker(settings, tmp_path / "worker1.log")
+    procs.append(w1)
+    c = api(base)
+    sid = upload(c, zip_bundle(tiny_scene, tmp_path / "tiny.zip"))
+    jid = c.post(f"/scenes/{sid}/reconstruct", json={"profile": "tiny", "stages": list(stages),
+                                                      "iterations_scale": iterations_scale}).json()["id"]
+    return c, jid, w1
+
+
 def test_killed_reconstruct_resumes_from_its_checkpoint(settings, tmp_path, tiny_scene, procs):
     """kill -9 of a worker in the middle of the volume stage: the retried attempt continues from
     the stage checkpoint instead of starting over, and finishes."""
@@ -138,14 +152,7 @@ def test_killed_reconstruct_resumes_from_its_checkpoint(settings, tmp_path, tiny
 
     import torch
 
-    gw, base = start_gateway(settings, tmp_path / "gateway.log")
-    procs.append(gw)
-    w1 = start_worker(settings, tmp_path / "worker1.log")
-    procs.append(w1)
-    c = api(base)
-    sid = upload(c, zip_bundle(tiny_scene, tmp_path / "tiny.zip"))
-    jid = c.post(f"/scenes/{sid}/reconstruct", json={"profile": "tiny", "stages": ["volume"],
-                                                      "iterations_scale": 10}).json()["id"]
+    c, jid, w1 = _reconstruct_on_one_worker(settings, tmp_path, tiny_scene, procs, ["volume"], 10)
     state = Path(settings.data_dir) / "checkpoints" / jid / "volume" / "train_state.pt"
     wait_for(lambda: state.is_file() or None, 180, f"a checkpoint of the volume stage\n{w1.tail()}")
     saved = torch.load(state, weights_only=True)["iteration"]
@@ -170,14 +177,7 @@ def test_killed_chain_stage_is_retried_without_rerunning_finished_stages(setting
 
     from worker.db import Artifact, JobStage, get_database
 
-    gw, base = start_gateway(settings, tmp_path / "gateway.log")
-    procs.append(gw)
-    w1 = start_worker(settings, tmp_path / "worker1.log")
-    procs.append(w1)
-    c = api(base)
-    sid = upload(c, zip_bundle(tiny_scene, tmp_path / "tiny.zip"))
-    jid = c.post(f"/scenes/{sid}/reconstruct", json={"profile": "tiny", "stages": ["volume", "pbr"],
-                                                      "iterations_scale": 6}).json()["id"]
+    c, jid, w1 = _reconstruct_on_one_worker(settings, tmp_path, tiny_scene, procs, ["volume", "pbr"], 6)
 
     def in_pbr():
         j = job(c, jid)
