@@ -16,6 +16,10 @@ Steps (world frame, z up; directions unit; radiance linear = ldr^gamma / exposur
      Cast shadows enter only as residual noise (a height-map shadow test from the reconstructed
      depth was tried and made it worse on the default scene: the casters of most shadows on a
      street - buildings behind or above the camera - are never in view).
+     With an occluder model the default search (``sun_model="auto"``) uses the sky-patch
+     transport of :mod:`core.gen.sky_transport` instead: the sky as 48 non-negative patches
+     seen through the occluders (the observed sky as a prior), the light the frames saw on the
+     occluders as interreflection, plus the candidate sun's shadowed term.
    * *sky*: saturated sky pixels forming a compact cluster (angular radius <= ``sun_cluster_deg``,
      most of the saturated pixels): the sun disc in view; accepted when the shading residual at
      its direction is among the best (``sky_cue_tolerance``; else haze / a bright object).
@@ -42,6 +46,7 @@ import numpy as np
 
 from core.conventions import camera_ray_directions, envmap_directions, envmap_solid_angles, pixel_to_direction
 from core.errors import ConfigError, ShapeError
+from core.gen.sky_transport import TransportSettings
 from core.numerics import require_finite_np
 
 #: Angular radius of the composed sun disc. The real sun is 0.27 deg; 1.5 deg spans a few pixels
@@ -49,6 +54,12 @@ from core.numerics import require_finite_np
 SUN_RADIUS_DEG = 1.5
 #: Width of the sky's aureole (glow) term around the sun, degrees.
 GLOW_WIDTH_DEG = 15.0
+#: Largest log-amplitude of the glow term: the sky next to the sun at most e^5 ~ 150 x brighter
+#: than the model without it (sunsets and haze reach tens of times; the sun disc is separate).
+MAX_GLOW_LOG = 5.0
+#: Largest |log-slope| of the sky radiance in the elevation sine (e^5 ~ 150 x from horizon to
+#: zenith).
+MAX_SKY_SLOPE_LOG = 5.0
 
 
 @dataclass(frozen=True)
@@ -89,10 +100,25 @@ class LightingSettings:
     true meshes as occluders): mean sun error 28.6 -> 22.1 deg, median 29.7 -> 23.2."""
     min_roughness: float = 0.5
     """With ``roughness`` given: samples below it are left out (glossy highlights)."""
+    sun_model: str = "auto"
+    """Model of the sun search: ``"transport"`` (:mod:`core.gen.sky_transport`: the sky as
+    non-negative patches seen through the occluders, the observed sky as a prior, the light the
+    frames saw on the occluders as interreflection), ``"lambert"`` (ambient + uniform dome +
+    sun) or ``"auto"``: transport when an occluder model (``visibility``) is given, else lambert
+    (without occluders the patches next to the sun can stand in for it: default scene 94 deg
+    off with transport, 14 with lambert). Measured on 8 sunny development streets (city,
+    sunrise, sunset: s100, s101, s104-s106, s109-s111) with the true meshes as occluders: mean
+    sun error 15.5 -> 13.3 deg, median 13.9 -> 4.6 (lambert -> transport); the five city and
+    sunrise streets all within 6.1 deg (lambert: one at 27.6); the three sunsets (sun 3.3 deg
+    above the horizon) stay 19-50 deg off with either."""
+    transport: TransportSettings = field(default_factory=TransportSettings)
+    """Patches and priors of the ``"transport"`` sun model."""
 
     def __post_init__(self) -> None:
         if self.height < 8 or not (0.5 < self.saturation <= 1.0) or self.max_points < 50:
             raise ConfigError(f"LightingSettings out of range: {self}")
+        if self.sun_model not in ("auto", "transport", "lambert"):
+            raise ConfigError(f"sun_model: must be 'auto', 'transport' or 'lambert', got {self.sun_model!r}")
 
 
 @dataclass
@@ -199,26 +225,40 @@ def _shading_fit(nrm, shading, s_dir, vis=None):
     return (float(np.mean(np.abs(r))) if coef[2] > 0 else math.inf), coef
 
 
-def _search_sun(nrm, shading, s: LightingSettings, vis_of=None):
-    """Coarse grid over the upper hemisphere, then two finer grids around the best residual.
+def _lambert_score(nrm, shading, vis_of=None):
+    """``score(dirs [K, 3]) -> [K]``: mean |residual| of :func:`_shading_fit` per candidate sun.
     ``vis_of(dirs [K, 3]) -> [K, N]``: the samples' visibility of each candidate (cast shadows)."""
+    def score(cands):
+        vis = vis_of(cands) if vis_of is not None else [None] * len(cands)
+        return np.array([_shading_fit(nrm, shading, c, v)[0] for c, v in zip(cands, vis)])
+    return score
+
+
+def _transport_score(tr):
+    """``score(dirs [K, 3]) -> [K]``: mean |residual| of the sky-patch transport fit
+    (:class:`core.gen.sky_transport.SkyTransport`) per candidate sun."""
+    def score(cands):
+        cols = tr.sun_columns(cands)
+        return np.array([tr.fit(cols[:, j])[0] for j in range(cols.shape[1])])
+    return score
+
+
+def _search_sun(score, s: LightingSettings):
+    """Coarse grid over the upper hemisphere, then two finer grids around the best residual;
+    ``score(dirs [K, 3]) -> [K]`` is the residual of each candidate (inf: no sun term)."""
     step = math.radians(s.coarse_step_deg)
     el_min = math.radians(s.min_elevation_deg)
     az = np.arange(-math.pi, math.pi, step)
     el = np.arange(el_min, math.radians(88.0), step)
     a_, e_ = np.meshgrid(az, el, indexing="ij")
-    cands = _sph(a_.ravel(), e_.ravel())
-    vis = vis_of(cands) if vis_of is not None else [None] * len(cands)
-    res = np.array([_shading_fit(nrm, shading, c, v)[0] for c, v in zip(cands, vis)])
+    res = score(_sph(a_.ravel(), e_.ravel()))
     best = int(np.argmin(res))
     ba, be, best_res = a_.ravel()[best], e_.ravel()[best], float(res[best])
     for fine in (step / 4, step / 16):
         da = np.arange(-4, 5) * fine
         aa, ee = np.meshgrid(ba + da / max(math.cos(be), 0.2),
                              np.clip(be + da, el_min, math.radians(89.0)), indexing="ij")
-        c2 = _sph(aa.ravel(), ee.ravel())
-        v2 = vis_of(c2) if vis_of is not None else [None] * len(c2)
-        r2 = np.array([_shading_fit(nrm, shading, c, v)[0] for c, v in zip(c2, v2)])
+        r2 = score(_sph(aa.ravel(), ee.ravel()))
         b2 = int(np.argmin(r2))
         ba, be, best_res = aa.ravel()[b2], ee.ravel()[b2], float(r2[b2])
     finite = res[np.isfinite(res)]
@@ -268,7 +308,10 @@ def _fit_sky(dirs, rad, censored, sun, s: LightingSettings):
             return np.concatenate([r, [lam * (p[1] + 0.5), lam * p[2]]])
 
         a0 = np.median(y[~cen]) if (~cen).any() else y.max()
-        sol = least_squares(res, [a0, -0.5, 0.0], loss="soft_l1", f_scale=0.3)
+        # bounded: an unobserved sun region once let the glow reach exp(43) (h7 with the
+        # transport sun: log error 0.83); the aureole is at most e^MAX_GLOW_LOG x the sky
+        sol = least_squares(res, [a0, -0.5, 0.1], loss="soft_l1", f_scale=0.3,
+                            bounds=([-np.inf, -MAX_SKY_SLOPE_LOG, 0.0], [np.inf, MAX_SKY_SLOPE_LOG, MAX_GLOW_LOG]))
         coeffs[c] = sol.x
     return coeffs
 
@@ -298,6 +341,42 @@ def compose_envmap(coeffs, sun_dir, sun_irradiance, ground, height: int = 512) -
         omega = float(sa[disc].sum())
         env[disc] += np.asarray(sun_irradiance)[None] / omega
     return env.astype(np.float32)
+
+
+def observed_radiance_lookup(cam_to_world, intrinsics, depth, radiance, invalid, rel_tol: float = 0.05,
+                             abs_tol_m: float = 0.15):
+    """``radiance_at(points [M, 3]) -> (L [M], known [M] bool)``: the radiance the frames saw at
+    world points (metres), from the first frame whose depth map holds the point (|z - depth| <=
+    rel_tol z + abs_tol_m) at a valid pixel (``invalid`` [T, H, W]: sky or clipped).
+
+    cam_to_world: [T, 4, 4] OpenCV; intrinsics (fx, fy, cx, cy); depth: [T, H, W] camera
+    z-depth, metres; radiance: [T, H, W] linear."""
+    poses = np.asarray(cam_to_world, np.float64)
+    fx, fy, cx, cy = map(float, intrinsics)
+    t_n, h, w = depth.shape
+
+    def radiance_at(points):
+        pts = np.asarray(points, np.float64).reshape(-1, 3)
+        out = np.zeros(len(pts))
+        known = np.zeros(len(pts), bool)
+        for t in range(t_n):
+            todo = np.flatnonzero(~known)
+            if not len(todo):
+                break
+            rot, ctr = poses[t, :3, :3], poses[t, :3, 3]
+            pc = (pts[todo] - ctr) @ rot  # camera frame (OpenCV: z forward)
+            z = pc[:, 2]
+            zs = np.where(z > 1e-3, z, 1.0)
+            u = np.floor(fx * pc[:, 0] / zs + cx).astype(np.int64)
+            v = np.floor(fy * pc[:, 1] / zs + cy).astype(np.int64)
+            ok = (z > 1e-3) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+            uu, vv = np.where(ok, u, 0), np.where(ok, v, 0)
+            d = depth[t, vv, uu]
+            ok &= (d > 0) & ~invalid[t, vv, uu] & (np.abs(d - z) <= rel_tol * z + abs_tol_m)
+            out[todo[ok]] = radiance[t, vv[ok], uu[ok]]
+            known[todo[ok]] = True
+        return out, known
+    return radiance_at
 
 
 def estimate_lighting(frames_ldr, cam_to_world, intrinsics, sky_masks, depth, normals, *,
@@ -384,7 +463,22 @@ def estimate_lighting(frames_ldr, cam_to_world, intrinsics, sky_masks, depth, no
     # --- sun direction
     source, sun, coef = "none", np.array([0.0, 0.0, 1.0]), np.zeros(3)
     if len(pick) >= 50:
-        sun_fit, res_best, d_sh = _search_sun(nn, shade, s, vis_of)
+        model = s.sun_model if s.sun_model != "auto" else ("transport" if vis_of is not None else "lambert")
+        diag["sun_model"] = model
+        if model == "transport":
+            from core.gen.sky_transport import SkyTransport
+
+            ok = ~sky_sat.any(-1)
+            seen = None
+            if vis_of is not None and s.transport.interreflection:
+                seen = observed_radiance_lookup(poses, (fx, fy, cx, cy), dep, rad.mean(-1), sky | sat.any(-1))
+            tr = SkyTransport(pts if vis_of is not None else np.zeros_like(nn), nn, shade, visibility,
+                              sky_dirs[ok], sky_rad[ok].mean(-1), s.transport, radiance_at=seen)
+            diag["interreflection_known_fraction"] = tr.known_fraction
+            score = _transport_score(tr)
+        else:
+            score = _lambert_score(nn, shade, vis_of)
+        sun_fit, res_best, d_sh = _search_sun(score, s)
         diag.update(d_sh)
         if math.isfinite(res_best) and d_sh["shading_contrast"] >= s.min_shading_contrast:
             sun, source = sun_fit, "shading"
@@ -392,8 +486,7 @@ def estimate_lighting(frames_ldr, cam_to_world, intrinsics, sky_masks, depth, no
     cluster = _sky_cluster(sky_dirs[sat_all], s) if sat_all.any() else None
     if cluster is not None and cluster[2] > 0:
         diag["sky_cluster_dir"] = cluster.tolist()
-        res_c = (_shading_fit(nn, shade, cluster, vis_of(cluster)[0] if vis_of else None)[0]
-                 if len(pick) >= 50 else math.inf)
+        res_c = float(score(cluster[None])[0]) if len(pick) >= 50 else math.inf
         diag["sky_cluster_residual"] = res_c
         best, med = diag.get("shading_residual", math.inf), diag.get("shading_residual_median", math.inf)
         if source == "none" or res_c <= best + s.sky_cue_tolerance * (med - best):
@@ -515,7 +608,8 @@ def numpy_visibility(tracer):
     :class:`core.pbr.visibility.GaussianTracer` (the ``visibility`` of :func:`estimate_lighting`)."""
     import torch
 
-    def visibility(origins, dirs):
+    def visibility(origins, dirs, t_max=None):
+        tm = None if t_max is None else torch.from_numpy(np.ascontiguousarray(t_max, np.float32))
         return tracer(torch.from_numpy(np.ascontiguousarray(origins, np.float32)),
-                      torch.from_numpy(np.ascontiguousarray(dirs, np.float32))).numpy()
+                      torch.from_numpy(np.ascontiguousarray(dirs, np.float32)), tm).numpy()
     return visibility

@@ -157,7 +157,10 @@ def _prior(frames: list[_FrameData], bundle, height: int, tracer=None):
     m = bundle.manifest
     return estimate_lighting(np.stack(imgs), np.stack(poses), (c.fx, c.fy, c.cx, c.cy), np.stack(skies),
                              np.stack(deps), np.stack(nrms), albedo=np.stack(albs), exposure=m.ldr_exposure,
-                             gamma=m.ldr_gamma, settings=LightingSettings(height=max(height, 8)),
+                             gamma=m.ldr_gamma,
+                             # the transport sun model is measured with the true meshes as
+                             # occluders only; with a reconstruction's Gaussians it is not yet
+                             settings=LightingSettings(height=max(height, 8), sun_model="lambert"),
                              visibility=numpy_visibility(tracer) if tracer is not None else None)
 
 

@@ -39,7 +39,7 @@ def test_shading_fit_recovers_sun_on_lambertian_samples():
     sun = L._sph(math.radians(-126.0), math.radians(47.6))
     shade = 0.2 + 0.3 * (1 + n[:, 2]) / 2 + 1.5 * np.maximum(n @ sun, 0)
     shade *= np.exp(rng.normal(0, 0.03, len(shade)))
-    found, res, diag = L._search_sun(n, shade, L.LightingSettings())
+    found, res, diag = L._search_sun(L._lambert_score(n, shade), L.LightingSettings())
     assert L.sun_direction_error_deg(found, sun) < 3.0
     assert diag["shading_contrast"] > 0.2
 
@@ -62,9 +62,9 @@ def test_cast_shadows_identify_the_sun_azimuth_on_a_flat_ground():
     sun = L._sph(math.radians(-110.0), math.radians(35.0))
     shade = 0.2 + 0.3 + 1.5 * vis_of(sun)[0] * max(sun[2], 0.0)
     shade *= np.exp(rng.normal(0, 0.03, len(shade)))
-    found, _, diag = L._search_sun(n, shade, L.LightingSettings(), vis_of)
+    found, _, diag = L._search_sun(L._lambert_score(n, shade, vis_of), L.LightingSettings())
     assert L.sun_direction_error_deg(found, sun) < 3.0
-    flat, _, _ = L._search_sun(n, shade, L.LightingSettings())  # no shadow model: azimuth unknown
+    flat, _, _ = L._search_sun(L._lambert_score(n, shade), L.LightingSettings())  # no shadow model: azimuth unknown
     assert L.sun_direction_error_deg(flat, sun) > L.sun_direction_error_deg(found, sun) + 10.0
 
 
@@ -80,6 +80,8 @@ def test_oracle_occluders_find_the_sun_of_the_default_scene():
 
     gt = open_bundle(SCENE, validate=False).load_envmap()
     assert est.diagnostics["cast_shadows"] is True
+    assert est.diagnostics["sun_model"] == "transport" and plain.diagnostics["sun_model"] == "lambert"
+    assert 0.0 < est.diagnostics["interreflection_known_fraction"] < 1.0
     assert L.sun_direction_error_deg(est.sun_dir, L.brightest_direction(gt)) < 2.0
     with pytest.raises(ConfigError, match="occluders"):
         L.estimate_from_bundle(SCENE, "train", occluders="mesh")

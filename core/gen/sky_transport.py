@@ -1,0 +1,245 @@
+"""Sky-patch light transport: the sun search of the lighting prior with the sky as an unknown,
+non-uniform, partly occluded light instead of a uniform dome.
+
+The upper hemisphere is cut into ``bands x sectors`` patches of equal solid angle (bands uniform
+in z = sine of the elevation, sectors uniform in azimuth). For a surface sample i (world point
+p_i, unit normal n_i) the transport of patch k is
+
+    T[i, k] = 1/pi  sum_m  V(p_i, w_km) max(0, n_i . w_km) dw        (m: rays in patch k)
+
+so that a sky of radiance x_k on patch k gives the Lambertian shading (radiance / albedo)
+sum_k T[i, k] x_k. A ray the occluders stop brings the radiance the frames saw where it hits
+(bisected shadow-ray length, looked up in the frames by depth): the interreflection, which in
+a street canyon is about a third of the light on the road; hits no frame saw get one unknown
+radiance per patch. The ground (lower hemisphere, unoccluded, radiance g) adds g (1 - n_z) / 2,
+a sun of irradiance e in direction s adds e V(p_i, s) max(0, n_i . s) / pi. For a candidate s
+the non-negative (x, g, e) are fitted by least squares with two priors: patches the camera saw
+as unclipped sky should keep their observed radiance, and neighbouring patches should be alike.
+The candidate with the smallest mean |residual| over the samples is the sun.
+
+Why: a street is a canyon. A wall sees the sky only above the opposite building, and at sunset
+or in haze the sky near the sun is many times brighter than elsewhere; a uniform-dome model
+explains that glow with a wrong sun. With the patches the glow has its own unknowns, and only
+the sharp shadows and shading of the sun itself point at the sun.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from core.errors import ConfigError, ShapeError
+from core.numerics import require_finite_np
+
+
+@dataclass(frozen=True)
+class TransportSettings:
+    """Settings of :class:`SkyTransport`."""
+
+    bands: int = 4
+    """Elevation bands of the sky patches (equal solid angle: uniform in the elevation sine)."""
+    sectors: int = 12
+    """Azimuth sectors of the sky patches."""
+    rays_per_patch: int = 8
+    """Stratified rays per patch and sample for the patch transport."""
+    observed_weight: float = 1.0
+    """Weight of the observed-sky prior (one patch's squared radiance error against the mean
+    squared residual of the samples)."""
+    smoothness: float = 0.05
+    """Weight of the neighbour prior (squared radiance difference of adjacent patches)."""
+    seed: int = 0
+    """Seed of the ray jitter."""
+    interreflection: bool = True
+    """With an occluder model and frames: a patch ray that hits an occluder brings the radiance
+    the frames saw at the hit point (one bounce of the real scene, found by bisecting the
+    shadow ray's length); hits no frame saw fall back on the occluder unknowns."""
+    hit_iterations: int = 8
+    """Bisection steps (log distance, 0.05 to 300 m) of a hit point."""
+    occluder_radiance: bool = True
+    """Give the occluders' side of each patch its own radiance unknown (light reflected by the
+    surroundings) instead of treating occluded rays as black."""
+
+    def __post_init__(self) -> None:
+        if self.bands < 1 or self.sectors < 3 or self.rays_per_patch < 1:
+            raise ConfigError(f"TransportSettings: bands >= 1, sectors >= 3, rays_per_patch >= 1, got {self}")
+        if self.observed_weight < 0 or self.smoothness < 0:
+            raise ConfigError(f"TransportSettings: weights must be >= 0, got {self}")
+
+
+def patch_of(dirs, bands: int, sectors: int) -> np.ndarray:
+    """Patch index [...] of world directions [..., 3] (-1 below the horizon)."""
+    d = np.asarray(dirs, np.float64)
+    z = d[..., 2]
+    band = np.clip(np.floor(z * bands).astype(np.int64), 0, bands - 1)
+    az = np.mod(np.arctan2(d[..., 1], d[..., 0]), 2 * math.pi)
+    sector = np.clip(np.floor(az / (2 * math.pi) * sectors).astype(np.int64), 0, sectors - 1)
+    return np.where(z >= 0, band * sectors + sector, -1)
+
+
+def patch_rays(bands: int, sectors: int, rays: int, rng) -> np.ndarray:
+    """Stratified directions [K, rays, 3] inside each patch (uniform in solid angle)."""
+    k = bands * sectors
+    b = np.repeat(np.arange(bands), sectors)
+    s = np.tile(np.arange(sectors), bands)
+    u = rng.random((k, rays))
+    v = (np.arange(rays)[None] + rng.random((k, rays))) / rays  # stratified in azimuth
+    z = (b[:, None] + u) / bands
+    az = (s[:, None] + v) / sectors * 2 * math.pi
+    r = np.sqrt(np.maximum(1.0 - z * z, 0.0))
+    return np.stack([r * np.cos(az), r * np.sin(az), z], -1)
+
+
+def patch_neighbours(bands: int, sectors: int) -> np.ndarray:
+    """Pairs [P, 2] of adjacent patches (cyclic in azimuth, across bands)."""
+    pairs = []
+    for b in range(bands):
+        for s in range(sectors):
+            k = b * sectors + s
+            pairs.append((k, b * sectors + (s + 1) % sectors))
+            if b + 1 < bands:
+                pairs.append((k, (b + 1) * sectors + s))
+    return np.asarray(pairs, np.int64)
+
+
+class SkyTransport:
+    """The patch transport of a set of surface samples and the per-candidate sun fit.
+
+    Args:
+        points: [N, 3] world, metres: surface points, already lifted off the surface.
+        normals: [N, 3] world unit normals.
+        shading: [N] radiance / albedo of the samples (linear).
+        visibility: ``(origins [M, 3], dirs [M, 3]) -> V [M]`` in [0, 1], or None (V = 1).
+        sky_dirs, sky_radiance: observed unclipped sky, [S, 3] world directions and [S] radiance
+            (same channel mix as ``shading``); may be empty.
+        settings: :class:`TransportSettings`.
+    """
+
+    def __init__(self, points, normals, shading, visibility=None, sky_dirs=None, sky_radiance=None,
+                 settings: TransportSettings | None = None, radiance_at=None):
+        s = settings or TransportSettings()
+        self.settings = s
+        p = require_finite_np(np.asarray(points, np.float64), "points")
+        n = require_finite_np(np.asarray(normals, np.float64), "normals")
+        y = require_finite_np(np.asarray(shading, np.float64).reshape(-1), "shading")
+        if p.ndim != 2 or p.shape[1] != 3 or n.shape != p.shape or y.shape != (len(p),):
+            raise ShapeError(f"points {p.shape}, normals {n.shape}, shading {y.shape}: expected [N, 3], [N, 3], [N]")
+        self.points, self.normals, self.shading = p, n, y
+        self.visibility = visibility
+        k = s.bands * s.sectors
+        rng = np.random.default_rng(s.seed)
+        rays = patch_rays(s.bands, s.sectors, s.rays_per_patch, rng)  # [K, M, 3]
+        d_omega = 2 * math.pi / k / s.rays_per_patch
+        cos = np.maximum(np.einsum("nc,kmc->nkm", n, rays), 0.0)  # [N, K, M]
+        vis = self._vis(rays.reshape(-1, 3)).reshape(len(p), k, s.rays_per_patch)
+        self.patch_T = (vis * cos).sum(-1) * d_omega / math.pi  # [N, K]
+        # rays that hit an occluder see its radiance instead (interreflection: in a street the
+        # sunlit facades light the road and the opposite walls): the radiance the frames saw
+        # there where known, else one unknown per patch
+        unknown = np.ones_like(vis)
+        self.indirect = np.zeros(len(p))
+        self.known_fraction = 0.0
+        if radiance_at is not None and visibility is not None and s.interreflection:
+            blocked = np.flatnonzero((vis < 0.5) & (cos > 0))
+            if len(blocked):
+                i_s, rest = np.divmod(blocked, k * s.rays_per_patch)
+                dirs = rays.reshape(-1, 3)[rest]
+                t_hit = self._hit_distance(p[i_s], dirs)
+                rad, known = radiance_at(p[i_s] + dirs * t_hit[:, None])
+                rad = require_finite_np(np.asarray(rad, np.float64), "radiance_at")
+                flat_unknown = unknown.reshape(-1)
+                flat_unknown[blocked[known]] = 0.0
+                contrib = (1.0 - vis.reshape(-1)[blocked]) * cos.reshape(-1)[blocked] * rad * known
+                self.indirect = np.bincount(i_s, contrib, minlength=len(p)) * d_omega / math.pi
+                self.known_fraction = float(known.mean())
+        self.occluder_T = (((1.0 - vis) * unknown * cos).sum(-1) * d_omega / math.pi if s.occluder_radiance
+                           else np.zeros((len(p), 0)))
+        self.ground_T = (1.0 - n[:, 2]) / 2.0
+        # priors: observed patches (median radiance, weight by how much of the patch was seen)
+        obs_rows, obs_vals = [], []
+        if sky_dirs is not None and len(sky_dirs):
+            sd = np.asarray(sky_dirs, np.float64)
+            sr = np.asarray(sky_radiance, np.float64).reshape(-1)
+            if sr.shape != (len(sd),):
+                raise ShapeError(f"sky_radiance: expected [{len(sd)}], got {sr.shape}")
+            pid = patch_of(sd, s.bands, s.sectors)
+            for j in range(k):
+                m = pid == j
+                if m.sum() >= 10:
+                    obs_rows.append(j)
+                    obs_vals.append(float(np.median(sr[m])))
+        self.observed = np.asarray(obs_rows, np.int64)
+        self.observed_radiance = np.asarray(obs_vals, np.float64)
+        self.num_columns = k + self.occluder_T.shape[1] + 3
+        self._prior_A, self._prior_b = self._priors(k)
+
+    def _vis(self, dirs) -> np.ndarray:
+        """V [N * D] of every sample towards every direction of dirs [D, 3] (sample-major)."""
+        n, d = len(self.points), len(dirs)
+        if self.visibility is None:
+            return np.ones(n * d)
+        o = np.broadcast_to(self.points[:, None], (n, d, 3)).reshape(-1, 3)
+        dd = np.broadcast_to(np.asarray(dirs, np.float64)[None], (n, d, 3)).reshape(-1, 3)
+        v = np.asarray(self.visibility(o, dd), np.float64).reshape(-1)
+        if v.shape != (n * d,) or not np.isfinite(v).all():
+            raise ConfigError("visibility: must return [M] finite values")
+        return np.clip(v, 0.0, 1.0)
+
+    def _hit_distance(self, origins, dirs) -> np.ndarray:
+        """Distance [M] (metres) along each ray where the visibility falls below 1/2 (bisection
+        in log distance between 0.05 and 300 m)."""
+        lo = np.full(len(origins), math.log(0.05))
+        hi = np.full(len(origins), math.log(300.0))
+        for _ in range(self.settings.hit_iterations):
+            mid = (lo + hi) / 2
+            v = np.asarray(self.visibility(origins, dirs, np.exp(mid)), np.float64).reshape(-1)
+            blocked = v < 0.5
+            hi = np.where(blocked, mid, hi)
+            lo = np.where(blocked, lo, mid)
+        return np.exp((lo + hi) / 2)
+
+    def _priors(self, k: int):
+        """Rows (A, b) of the two priors, scaled so their squared sum sits beside the mean
+        squared residual of the samples (columns: K patches, ground, sun)."""
+        s = self.settings
+        rows, b = [], []
+        nc = self.num_columns
+        n_obs = max(len(self.observed), 1)
+        for j, val in zip(self.observed, self.observed_radiance):
+            r = np.zeros(nc)
+            r[j] = math.sqrt(s.observed_weight / n_obs)
+            rows.append(r)
+            b.append(val * r[j])
+        pairs = patch_neighbours(s.bands, s.sectors)
+        w = math.sqrt(s.smoothness / len(pairs))
+        for off in (0, k) if self.occluder_T.shape[1] else (0,):
+            for a, c in pairs:
+                r = np.zeros(nc)
+                r[off + a], r[off + c] = w, -w
+                rows.append(r)
+                b.append(0.0)
+        return np.asarray(rows).reshape(-1, nc), np.asarray(b)
+
+    def sun_columns(self, dirs) -> np.ndarray:
+        """Sun transport [N, D] of candidate sun directions dirs [D, 3] (unit irradiance)."""
+        d = np.asarray(dirs, np.float64).reshape(-1, 3)
+        v = self._vis(d).reshape(len(self.points), len(d))
+        return v * np.maximum(self.normals @ d.T, 0.0) / math.pi
+
+    def fit(self, sun_col, shading=None):
+        """Non-negative (sky radiance per patch [K], occluder radiance per patch [K] (with
+        ``occluder_radiance``), scale of the observed interreflection (1 = as seen), ground
+        radiance, sun irradiance) for one sun column [N]; returns
+        (mean |residual| over the samples, coefficients [num_columns])."""
+        from scipy.optimize import nnls
+
+        y = self.shading if shading is None else np.asarray(shading, np.float64)
+        n = len(y)
+        a = np.concatenate([self.patch_T, self.occluder_T, self.indirect[:, None], self.ground_T[:, None],
+                            np.asarray(sun_col)[:, None]], 1) / math.sqrt(n)
+        big_a = np.concatenate([a, self._prior_A], 0)
+        big_b = np.concatenate([y / math.sqrt(n), self._prior_b])
+        x, _ = nnls(big_a, big_b, maxiter=50 * big_a.shape[1])
+        r = y - a @ x * math.sqrt(n)
+        return float(np.mean(np.abs(r))), x
