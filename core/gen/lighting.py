@@ -52,6 +52,10 @@ from core.numerics import require_finite_np
 #: Angular radius of the composed sun disc. The real sun is 0.27 deg; 1.5 deg spans a few pixels
 #: of a 512x1024 map (0.35 deg per pixel) so importance sampling finds it; its irradiance is exact.
 SUN_RADIUS_DEG = 1.5
+#: Gaussians of the "oracle" occluders (the street's true meshes as thin Gaussians), and the
+#: largest spacing between them (metres).
+ORACLE_GAUSSIANS = 60_000
+ORACLE_MAX_SPACING_M = 1.0
 #: Width of the sky's aureole (glow) term around the sun, degrees.
 GLOW_WIDTH_DEG = 15.0
 #: Largest log-amplitude of the glow term: the sky next to the sun at most e^5 ~ 150 x brighter
@@ -100,6 +104,9 @@ class LightingSettings:
     true meshes as occluders): mean sun error 28.6 -> 22.1 deg, median 29.7 -> 23.2."""
     min_roughness: float = 0.5
     """With ``roughness`` given: samples below it are left out (glossy highlights)."""
+    min_albedo: float = 0.05
+    """Samples whose albedo (mean of RGB) is at or below it are left out of the shading fit
+    (radiance / albedo amplifies everything that is not diffuse reflection)."""
     sun_model: str = "auto"
     """Model of the sun search: ``"transport"`` (:mod:`core.gen.sky_transport`: the sky as
     non-negative patches seen through the occluders, the observed sky as a prior, the light the
@@ -432,7 +439,7 @@ def estimate_lighting(frames_ldr, cam_to_world, intrinsics, sky_masks, depth, no
             surf &= keep(a.reshape(t, h, w))
     if albedo is not None:
         alb = np.asarray(albedo, np.float64).reshape(t, h, w, 3)
-        surf &= alb.mean(-1) > 0.05
+        surf &= alb.mean(-1) > s.min_albedo
         shade_all = (rad[surf] / np.maximum(alb[surf], 0.02)).mean(-1)
     else:  # no albedo: luminance only (albedo variation then biases the fit, see module doc)
         shade_all = rad[surf] @ np.array([0.2126, 0.7152, 0.0722])
@@ -468,12 +475,13 @@ def estimate_lighting(frames_ldr, cam_to_world, intrinsics, sky_masks, depth, no
         if model == "transport":
             from core.gen.sky_transport import SkyTransport
 
-            ok = ~sky_sat.any(-1)
+            # clipped channels only bound the radiance from below: at the clip level
+            sky_low = np.where(sky_sat, (s.saturation ** gamma) / exposure, sky_rad).mean(-1)
             seen = None
             if vis_of is not None and s.transport.interreflection:
                 seen = observed_radiance_lookup(poses, (fx, fy, cx, cy), dep, rad.mean(-1), sky | sat.any(-1))
             tr = SkyTransport(pts if vis_of is not None else np.zeros_like(nn), nn, shade, visibility,
-                              sky_dirs[ok], sky_rad[ok].mean(-1), s.transport, radiance_at=seen)
+                              sky_dirs, sky_low, s.transport, radiance_at=seen, sky_clipped=sky_sat.any(-1))
             diag["interreflection_known_fraction"] = tr.known_fraction
             score = _transport_score(tr)
         else:
@@ -524,7 +532,7 @@ def estimate_lighting(frames_ldr, cam_to_world, intrinsics, sky_masks, depth, no
 def estimate_from_bundle(root, split: str = "train", settings: LightingSettings | None = None,
                          depth_noise_m: float = 0.0, normal_noise_deg: float = 0.0, albedo_noise: float = 0.0,
                          use_albedo: bool = True, seed: int = 0, occluders: str = "none",
-                         use_materials: bool = True) -> LightingEstimate:
+                         use_materials: bool = True, oracle_gaussians: int = ORACLE_GAUSSIANS) -> LightingEstimate:
     """:func:`estimate_lighting` on a bundle's frames of ``split``, with the bundle's ground-truth
     depth, normals, albedo (and, with ``use_materials``, roughness and metallic) standing in for
     the reconstruction (optionally perturbed: Gaussian depth noise in metres, normal noise in
@@ -535,12 +543,14 @@ def estimate_from_bundle(root, split: str = "train", settings: LightingSettings 
     LiDAR points (every sweep, seen by a camera or not, opacity 0.9), what any reconstruction
     starts from; ``"oracle"``: the synthetic street's ground-truth meshes as thin Gaussians
     (:func:`core.pbr.oracle.street_scene_graph`, static parts at time 0), the stand-in for a
-    converged reconstruction.
+    converged reconstruction, ``oracle_gaussians`` of them (250,000 instead of 60,000 sharpens
+    the shadows; on 8 sunny development streets: mean sun error 13.3 either way, median 4.6 ->
+    1.9 deg).
     """
     from core.bundle import open_bundle
 
     b = open_bundle(root, validate=False)
-    visibility = occluder_tracer(b, occluders)
+    visibility = occluder_tracer(b, occluders, oracle_gaussians)
     frames = sorted(b.frames(split), key=lambda fr: fr.time_index)
     if not frames:
         raise ConfigError(f"{root}: no frames in split {split!r}")
@@ -577,7 +587,7 @@ def estimate_from_bundle(root, split: str = "train", settings: LightingSettings 
                              metallic=np.stack(metal) if use_materials else None)
 
 
-def occluder_tracer(bundle, occluders: str):
+def occluder_tracer(bundle, occluders: str, oracle_gaussians: int = ORACLE_GAUSSIANS):
     """A shadow-ray tracer (:class:`core.pbr.visibility.GaussianTracer`) of a bundle's occluders
     (see :func:`estimate_from_bundle`), or None for ``"none"``."""
     from dataclasses import replace
@@ -596,7 +606,8 @@ def occluder_tracer(bundle, occluders: str):
         from core.pbr.oracle import OracleSettings, street_scene_graph
 
         cfg = synth_config_of(bundle)
-        graph, _, _ = street_scene_graph(cfg, (0,), settings=OracleSettings(max_spacing=1.0), budget=60_000)
+        graph, _, _ = street_scene_graph(cfg, (0,), settings=OracleSettings(max_spacing=ORACLE_MAX_SPACING_M),
+                                         budget=int(oracle_gaussians))
         g = graph.compose(0.0)
     else:
         raise ConfigError(f"occluders: must be 'none', 'lidar' or 'oracle', got {occluders!r}")

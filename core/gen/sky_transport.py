@@ -111,13 +111,15 @@ class SkyTransport:
         normals: [N, 3] world unit normals.
         shading: [N] radiance / albedo of the samples (linear).
         visibility: ``(origins [M, 3], dirs [M, 3]) -> V [M]`` in [0, 1], or None (V = 1).
-        sky_dirs, sky_radiance: observed unclipped sky, [S, 3] world directions and [S] radiance
-            (same channel mix as ``shading``); may be empty.
+        sky_dirs, sky_radiance: observed sky, [S, 3] world directions and [S] radiance (same
+            channel mix as ``shading``); may be empty.
+        sky_clipped: [S] bool, the pixel was clipped (its radiance only a lower bound); a patch
+            seen mostly clipped is bounded from below instead of held at its median.
         settings: :class:`TransportSettings`.
     """
 
     def __init__(self, points, normals, shading, visibility=None, sky_dirs=None, sky_radiance=None,
-                 settings: TransportSettings | None = None, radiance_at=None):
+                 settings: TransportSettings | None = None, radiance_at=None, sky_clipped=None):
         s = settings or TransportSettings()
         self.settings = s
         p = require_finite_np(np.asarray(points, np.float64), "points")
@@ -132,8 +134,9 @@ class SkyTransport:
         rays = patch_rays(s.bands, s.sectors, s.rays_per_patch, rng)  # [K, M, 3]
         d_omega = 2 * math.pi / k / s.rays_per_patch
         cos = np.maximum(np.einsum("nc,kmc->nkm", n, rays), 0.0)  # [N, K, M]
+        wgt = cos / math.pi  # shading weight of each ray (Lambertian)
         vis = self._vis(rays.reshape(-1, 3)).reshape(len(p), k, s.rays_per_patch)
-        self.patch_T = (vis * cos).sum(-1) * d_omega / math.pi  # [N, K]
+        self.patch_T = (vis * wgt).sum(-1) * d_omega  # [N, K]
         # rays that hit an occluder see its radiance instead (interreflection: in a street the
         # sunlit facades light the road and the opposite walls): the radiance the frames saw
         # there where known, else one unknown per patch
@@ -150,28 +153,35 @@ class SkyTransport:
                 rad = require_finite_np(np.asarray(rad, np.float64), "radiance_at")
                 flat_unknown = unknown.reshape(-1)
                 flat_unknown[blocked[known]] = 0.0
-                contrib = (1.0 - vis.reshape(-1)[blocked]) * cos.reshape(-1)[blocked] * rad * known
-                self.indirect = np.bincount(i_s, contrib, minlength=len(p)) * d_omega / math.pi
+                contrib = (1.0 - vis.reshape(-1)[blocked]) * wgt.reshape(-1)[blocked] * rad * known
+                self.indirect = np.bincount(i_s, contrib, minlength=len(p)) * d_omega
                 self.known_fraction = float(known.mean())
-        self.occluder_T = (((1.0 - vis) * unknown * cos).sum(-1) * d_omega / math.pi if s.occluder_radiance
+        self.occluder_T = (((1.0 - vis) * unknown * wgt).sum(-1) * d_omega if s.occluder_radiance
                            else np.zeros((len(p), 0)))
         self.ground_T = (1.0 - n[:, 2]) / 2.0
-        # priors: observed patches (median radiance, weight by how much of the patch was seen)
+        # priors: observed patches keep their median radiance; a patch seen mostly clipped only
+        # bounds its radiance from below (the median of the pixels' lower bounds)
         obs_rows, obs_vals = [], []
+        self.num_columns = k + self.occluder_T.shape[1] + 3
+        self.lower = np.zeros(self.num_columns)
         if sky_dirs is not None and len(sky_dirs):
-            sd = np.asarray(sky_dirs, np.float64)
-            sr = np.asarray(sky_radiance, np.float64).reshape(-1)
-            if sr.shape != (len(sd),):
-                raise ShapeError(f"sky_radiance: expected [{len(sd)}], got {sr.shape}")
+            sd = np.asarray(sky_dirs, np.float64).reshape(-1, 3)
+            sr = require_finite_np(np.asarray(sky_radiance, np.float64).reshape(-1), "sky_radiance")
+            cl = np.zeros(len(sd), bool) if sky_clipped is None else np.asarray(sky_clipped, bool).reshape(-1)
+            if sr.shape != (len(sd),) or cl.shape != (len(sd),):
+                raise ShapeError(f"sky_radiance {sr.shape}, sky_clipped {cl.shape}: expected [{len(sd)}]")
             pid = patch_of(sd, s.bands, s.sectors)
             for j in range(k):
                 m = pid == j
-                if m.sum() >= 10:
+                if m.sum() < 10:
+                    continue
+                if cl[m].mean() >= 0.5:
+                    self.lower[j] = float(np.median(sr[m]))
+                else:
                     obs_rows.append(j)
                     obs_vals.append(float(np.median(sr[m])))
         self.observed = np.asarray(obs_rows, np.int64)
         self.observed_radiance = np.asarray(obs_vals, np.float64)
-        self.num_columns = k + self.occluder_T.shape[1] + 3
         self._prior_A, self._prior_b = self._priors(k)
 
     def _vis(self, dirs) -> np.ndarray:
@@ -240,6 +250,8 @@ class SkyTransport:
                             np.asarray(sun_col)[:, None]], 1) / math.sqrt(n)
         big_a = np.concatenate([a, self._prior_A], 0)
         big_b = np.concatenate([y / math.sqrt(n), self._prior_b])
-        x, _ = nnls(big_a, big_b, maxiter=50 * big_a.shape[1])
+        # x = lower + z, z >= 0 (clipped patches are bounded from below)
+        z, _ = nnls(big_a, big_b - big_a @ self.lower, maxiter=50 * big_a.shape[1])
+        x = self.lower + z
         r = y - a @ x * math.sqrt(n)
         return float(np.mean(np.abs(r))), x

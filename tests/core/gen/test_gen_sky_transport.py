@@ -95,6 +95,27 @@ def test_hit_distance_and_observed_radiance():
     assert val[0] == pytest.approx(0.7)
 
 
+def test_mostly_clipped_patch_is_a_lower_bound():
+    """A patch seen mostly clipped bounds its radiance from below (the fit may go above, never
+    below); a patch seen unclipped is held near its median."""
+    rng = np.random.default_rng(3)
+    n = np.tile([0.0, 0.0, 1.0], (300, 1))
+    sky = T.patch_rays(4, 12, 40, rng)  # 40 directions in every patch
+    rad = np.full(sky.shape[:2], 0.5)
+    clipped = np.zeros(sky.shape[:2], bool)
+    clipped[3] = True  # patch 3: every pixel clipped at 0.9
+    rad[3] = 0.9
+    truth = np.full(48, 0.5)
+    truth[3] = 1.2  # brighter than its clip level
+    shade = T.SkyTransport(np.zeros((300, 3)), n, np.ones(300)).patch_T @ truth
+    tr = T.SkyTransport(np.zeros((300, 3)), n, shade, None, sky.reshape(-1, 3), rad.reshape(-1),
+                        sky_clipped=clipped.reshape(-1))
+    assert tr.lower[3] == pytest.approx(0.9) and 3 not in tr.observed.tolist() and len(tr.observed) == 47
+    _, x = tr.fit(np.zeros(300))
+    assert x[3] >= 0.9 - 1e-9 and np.all(x >= -1e-12)
+    assert abs(np.median(x[tr.observed]) - 0.5) < 0.05
+
+
 def test_bad_input():
     with pytest.raises(ConfigError, match="sectors"):
         T.TransportSettings(sectors=2)
