@@ -115,9 +115,10 @@ class LightingSettings:
     (without occluders the patches next to the sun can stand in for it: default scene 94 deg
     off with transport, 14 with lambert). Measured on 8 sunny development streets (city,
     sunrise, sunset: s100, s101, s104-s106, s109-s111) with the true meshes as occluders: mean
-    sun error 15.5 -> 13.3 deg, median 13.9 -> 4.6 (lambert -> transport); the five city and
+    sun error 15.5 -> 12.3 deg, median 13.9 -> 4.6 (lambert -> transport); the five city and
     sunrise streets all within 6.1 deg (lambert: one at 27.6); the three sunsets (sun 3.3 deg
-    above the horizon) stay 19-50 deg off with either."""
+    above the horizon) stay 19-50 deg off with either. Not solved: the validation city street
+    v14 (city at 105 deg) is 88 deg off with either model."""
     transport: TransportSettings = field(default_factory=TransportSettings)
     """Patches and priors of the ``"transport"`` sun model."""
 

@@ -116,6 +116,33 @@ def test_mostly_clipped_patch_is_a_lower_bound():
     assert abs(np.median(x[tr.observed]) - 0.5) < 0.05
 
 
+def test_interreflection_as_seen_or_scaled():
+    """With ``free_interreflection_scale=False`` the interreflection the frames saw is a known
+    term (scale 1, subtracted from the shading); with True its scale is fitted."""
+    rng = np.random.default_rng(4)
+    m = 400
+    pts = np.stack([rng.uniform(-3, 3, m), rng.uniform(0.5, 4, m), rng.uniform(0.2, 3, m)], 1)
+    n = np.tile([0.0, 0.0, 1.0], (m, 1))
+
+    def seen(points):  # the wall as the frames saw it: radiance 0.4 everywhere
+        return np.full(len(points), 0.4), np.ones(len(points), bool)
+
+    kw = dict(visibility=_wall_visibility, radiance_at=seen)
+    fixed = T.SkyTransport(pts, n, np.ones(m), settings=T.TransportSettings(free_interreflection_scale=False), **kw)
+    assert fixed.indirect.max() > 0.01 and fixed.known_fraction == 1.0
+    sky = np.full(48, 0.6)
+    with_ir = fixed.patch_T @ sky + fixed.indirect
+    res_fixed, x_fixed = fixed.fit(np.zeros(m), shading=with_ir)
+    assert res_fixed < 1e-3 and x_fixed[-3] == 1.0
+    # shading without the interreflection: the fixed model cannot drop it, the free one can
+    no_ir = fixed.patch_T @ sky
+    res_fixed_no, _ = fixed.fit(np.zeros(m), shading=no_ir)
+    free = T.SkyTransport(pts, n, np.ones(m), settings=T.TransportSettings(free_interreflection_scale=True), **kw)
+    res_free_no, x_free = free.fit(np.zeros(m), shading=no_ir)
+    assert res_free_no < 1e-3 and x_free[-3] < 0.05
+    assert res_fixed_no > 10 * res_free_no
+
+
 def test_bad_input():
     with pytest.raises(ConfigError, match="sectors"):
         T.TransportSettings(sectors=2)
