@@ -124,7 +124,7 @@ def make_scene(root: Path) -> Path:
 
 
 def start(args, env, log: Path) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "core", *args], env=env, cwd=REPO, stdout=open(log, "ab"),
+    return subprocess.Popen([sys.executable, "-m", "services.cli", *args], env=env, cwd=REPO, stdout=open(log, "ab"),
                             stderr=subprocess.STDOUT, start_new_session=True)
 
 

@@ -1,7 +1,9 @@
 """``brdf``: the command-line entry point of the BRDFusion library (no server needed).
 
-Subcommands: generate, validate, import, render, info, pack, unpack; and the rendering service's
-serve, worker, up, keys (implemented in ``services.cli``, imported only when one of them runs).
+Subcommands: generate, validate, import, render, info, pack, unpack. The installed ``brdf`` command
+is :func:`services.cli.main`, which adds the rendering service's serve, worker, up and keys through
+``extensions`` (so ``core`` imports no server code; ``python -m core`` has the library's commands
+only).
 Errors from ``core`` print one clear line (file, field, what is wrong) and exit with status 2;
 never a traceback.
 """
@@ -148,23 +150,9 @@ def cmd_unpack(a: argparse.Namespace) -> int:
     return 0
 
 
-def cmd_service(a: argparse.Namespace) -> int:
-    """serve / worker / up / keys: the service lives outside ``core`` (see services/cli.py)."""
-    from services import cli as svc
-
-    try:
-        if a.cmd == "serve":
-            return svc.serve(a.host, a.port)
-        if a.cmd == "worker":
-            return svc.worker(a.queues, burst=a.burst, fork=not a.no_fork, name=a.name, nice=a.nice)
-        if a.cmd == "up":
-            return svc.up(a.host, a.port, a.workers)
-        return svc.keys_create(a.tenant, a.scope, a.name)
-    except svc.ServiceError as e:
-        raise CoreError(str(e)) from None
-
-
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(extensions=()) -> argparse.ArgumentParser:
+    """The ``brdf`` parser; each of ``extensions`` is called with the subparsers to add commands
+    (their ``fn`` runs them; a :class:`CoreError` they raise prints as one line)."""
     p = argparse.ArgumentParser(prog="brdf", description="BRDFusion: relightable driving scenes")
     sub = p.add_subparsers(dest="cmd", required=True)
 
@@ -225,36 +213,13 @@ def build_parser() -> argparse.ArgumentParser:
     u.add_argument("dest")
     u.set_defaults(fn=cmd_unpack)
 
-    sv = sub.add_parser("serve", help="run the HTTP gateway (settings from BRDF_* environment variables)")
-    sv.add_argument("--host", default="127.0.0.1")
-    sv.add_argument("--port", type=int, default=8000)
-    sv.set_defaults(fn=cmd_service)
-
-    wk = sub.add_parser("worker", help="run an RQ worker on the render and/or train queues")
-    wk.add_argument("--queues", default="render,train", help="comma-separated: render, train")
-    wk.add_argument("--burst", action="store_true", help="exit when the queues are empty")
-    wk.add_argument("--no-fork", action="store_true", help="run jobs in the worker process (warm models)")
-    wk.add_argument("--name", default=None)
-    wk.add_argument("--nice", type=int, default=0, help="lower the worker's CPU priority (0-19), e.g. beside a gateway")
-    wk.set_defaults(fn=cmd_service)
-
-    up = sub.add_parser("up", help="one machine: a gateway and workers against a local Redis")
-    up.add_argument("--host", default="127.0.0.1")
-    up.add_argument("--port", type=int, default=8000)
-    up.add_argument("--workers", type=int, default=1)
-    up.set_defaults(fn=cmd_service)
-
-    ky = sub.add_parser("keys", help="create an API key (shown once, stored hashed)")
-    ky.add_argument("action", choices=["create"])
-    ky.add_argument("--tenant", required=True)
-    ky.add_argument("--scope", choices=["client", "operator"], default="client")
-    ky.add_argument("--name", default="")
-    ky.set_defaults(fn=cmd_service)
+    for extend in extensions:
+        extend(sub)
     return p
 
 
-def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+def main(argv: list[str] | None = None, extensions=()) -> int:
+    args = build_parser(extensions).parse_args(argv)
     try:
         return int(args.fn(args) or 0)
     except CoreError as e:

@@ -1,5 +1,6 @@
-"""``brdf serve``, ``brdf worker``, ``brdf up`` and ``brdf keys``: the service's commands (parsed
-in ``core/cli.py``, run here so ``core`` imports no server code)."""
+"""``brdf serve``, ``brdf worker``, ``brdf up`` and ``brdf keys``: the service's commands, and
+:func:`main`, the installed ``brdf`` command (the library's commands of :mod:`core.cli` plus
+these; ``core`` imports no server code)."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ import signal
 import subprocess
 import sys
 import time
+from argparse import Namespace
 from urllib.parse import urlparse
 
 #: The exact commands the docker compose file runs (tests check that they agree).
@@ -120,7 +122,7 @@ def up(host: str, port: int, workers: int) -> int:
     elif not has_op:
         key, _ = create_key(db, "operator", "operator", "created by brdf up")
     env = dict(os.environ)
-    exe = [sys.executable, "-m", "core.cli"]
+    exe = [sys.executable, "-m", "services.cli"]
     for i in range(workers):
         # one machine: the gateway's latency comes first, so workers run at a lower CPU priority
         children.append(subprocess.Popen(exe + ["worker", "--queues", "render,train", "--nice", "10"], env=env))
@@ -142,3 +144,58 @@ def up(host: str, port: int, workers: int) -> int:
                 c.wait(timeout=20)
             except subprocess.TimeoutExpired:
                 c.kill()
+
+
+def _run(a: Namespace) -> int:
+    from core.errors import CoreError
+
+    try:
+        if a.cmd == "serve":
+            return serve(a.host, a.port)
+        if a.cmd == "worker":
+            return worker(a.queues, burst=a.burst, fork=not a.no_fork, name=a.name, nice=a.nice)
+        if a.cmd == "up":
+            return up(a.host, a.port, a.workers)
+        return keys_create(a.tenant, a.scope, a.name)
+    except ServiceError as e:
+        raise CoreError(str(e)) from None
+
+
+def add_commands(sub) -> None:
+    """Add serve, worker, up and keys to the ``brdf`` subparsers (:func:`core.cli.build_parser`)."""
+    sv = sub.add_parser("serve", help="run the HTTP gateway (settings from BRDF_* environment variables)")
+    sv.add_argument("--host", default="127.0.0.1")
+    sv.add_argument("--port", type=int, default=8000)
+    sv.set_defaults(fn=_run)
+
+    wk = sub.add_parser("worker", help="run an RQ worker on the render and/or train queues")
+    wk.add_argument("--queues", default="render,train", help="comma-separated: render, train")
+    wk.add_argument("--burst", action="store_true", help="exit when the queues are empty")
+    wk.add_argument("--no-fork", action="store_true", help="run jobs in the worker process (warm models)")
+    wk.add_argument("--name", default=None)
+    wk.add_argument("--nice", type=int, default=0, help="lower the worker's CPU priority (0-19), e.g. beside a gateway")
+    wk.set_defaults(fn=_run)
+
+    up_ = sub.add_parser("up", help="one machine: a gateway and workers against a local Redis")
+    up_.add_argument("--host", default="127.0.0.1")
+    up_.add_argument("--port", type=int, default=8000)
+    up_.add_argument("--workers", type=int, default=1)
+    up_.set_defaults(fn=_run)
+
+    ky = sub.add_parser("keys", help="create an API key (shown once, stored hashed)")
+    ky.add_argument("action", choices=["create"])
+    ky.add_argument("--tenant", required=True)
+    ky.add_argument("--scope", choices=["client", "operator"], default="client")
+    ky.add_argument("--name", default="")
+    ky.set_defaults(fn=_run)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """The ``brdf`` command: the library's commands and the service's."""
+    from core.cli import main as core_main
+
+    return core_main(argv, extensions=(add_commands,))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

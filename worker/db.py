@@ -17,7 +17,7 @@ from typing import Any, Iterator
 
 from sqlalchemy import (
     JSON, Boolean, DateTime, Float, ForeignKey, Integer, String, Text, TypeDecorator, UniqueConstraint,
-    create_engine, event,
+    create_engine, event, select,
 )
 from sqlalchemy.engine import Engine
 from sqlalchemy.orm import DeclarativeBase, Mapped, Session, mapped_column, relationship, sessionmaker
@@ -150,6 +150,13 @@ class JobStage(Base):
     started_at: Mapped[datetime | None] = mapped_column(default=None)
     finished_at: Mapped[datetime | None] = mapped_column(default=None)
     metrics: Mapped[dict[str, Any]] = mapped_column(default=dict)
+
+
+def pending_stage_names(session: Session, job_id: str) -> list[str]:
+    """The stages of a job that are not done, in chain order (inside the caller's session, so a
+    claim can read and update in one transaction)."""
+    return list(session.scalars(select(JobStage.name).where(JobStage.job_id == job_id, JobStage.state != "done")
+                                .order_by(JobStage.id)))
 
 
 class Artifact(Base):

@@ -30,7 +30,7 @@ from pathlib import Path
 from sqlalchemy import delete, func, select, update
 
 from api_schemas import OutputKind, ReconstructRequest, RenderRequest
-from worker.db import Artifact, Database, Job, JobStage, Scene, get_database, utcnow
+from worker.db import Artifact, Database, Job, JobStage, Scene, get_database, pending_stage_names, utcnow
 from worker.registry import JobType, register
 from worker.settings import QUEUE_RENDER, QUEUE_TRAIN, Settings, get_settings
 from worker.storage import ArtifactStore, get_store
@@ -233,8 +233,7 @@ def _claim(db: Database, job_id: str, attempt: int, stage: str | None = None) ->
         pass
     with db.session() as s:
         if stage is not None:
-            rest = list(s.scalars(select(JobStage.name).where(JobStage.job_id == job_id, JobStage.state != "done")
-                                  .order_by(JobStage.id)))
+            rest = pending_stage_names(s, job_id)
             if not rest or rest[0] != stage:
                 return None
         n = s.execute(update(Job).where(Job.id == job_id, Job.state == "queued", Job.attempts == attempt)

@@ -20,7 +20,7 @@ from rq.job import JobStatus
 from rq.serializers import JSONSerializer
 from sqlalchemy import select, update
 
-from worker.db import Database, Job, JobStage, rq_job_id, utcnow
+from worker.db import Database, Job, JobStage, pending_stage_names, rq_job_id, utcnow
 from worker.settings import QUEUES, Settings
 
 log = logging.getLogger("brdf.queue")
@@ -45,8 +45,7 @@ def get_queue(name: str, conn: redis.Redis) -> Queue:
 def pending_stages(db: Database, job_id: str) -> list[str]:
     """The stages of a job that are not done, in chain order."""
     with db.session() as s:
-        return list(s.scalars(select(JobStage.name).where(JobStage.job_id == job_id, JobStage.state != "done")
-                              .order_by(JobStage.id)))
+        return pending_stage_names(s, job_id)
 
 
 def is_chained(job: Job) -> bool:

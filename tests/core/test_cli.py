@@ -51,3 +51,20 @@ def test_errors_are_one_line_without_traceback(tmp_path):
 def test_generate_bad_override(tmp_path, capsys):
     assert main(["generate", "--profile", "tiny", "--out", str(tmp_path / "x"), "--set", "width=1"]) == 2
     assert "width" in capsys.readouterr().err
+
+
+def test_core_cli_imports_no_server_code():
+    """``core.cli`` (``python -m core``) has the library's commands only and loads no server
+    package; the installed ``brdf`` (``services.cli.main``) adds the service's commands."""
+    code = ("import sys, core.cli; p = core.cli.build_parser(); "
+            "bad = sorted(m for m in sys.modules if m.split('.')[0] in ('services', 'worker', 'fastapi', 'redis', 'rq', 'api_schemas')); "
+            "print(bad)")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert r.stdout.strip() == "[]"
+    r = subprocess.run([sys.executable, "-m", "core", "serve"], capture_output=True, text=True)
+    assert r.returncode == 2 and "invalid choice" in r.stderr
+    from services.cli import main as brdf
+
+    with pytest.raises(SystemExit) as e:
+        brdf(["keys", "create"])  # parsed by the full command: only --tenant is missing
+    assert e.value.code == 2

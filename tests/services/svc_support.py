@@ -200,7 +200,7 @@ def cli_cmd(cmd: list[str], **replace: str) -> list[str]:
     """A compose command (``brdf ...``) as run here: the venv's interpreter, and the host / port
     swapped for test values."""
     assert cmd[0] == "brdf"
-    out = [sys.executable, "-m", "core", *cmd[1:]]
+    out = [sys.executable, "-m", "services.cli", *cmd[1:]]
     return [replace.get(x, x) for x in out]
 
 

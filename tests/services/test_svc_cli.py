@@ -16,7 +16,7 @@ from svc_support import REPO, free_port, make_bundle, svc_env, wait_for, zip_bun
 
 
 def run_cli(args, env):
-    return subprocess.run([sys.executable, "-m", "core", *args], env=env, cwd=REPO, capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "services.cli", *args], env=env, cwd=REPO, capture_output=True, text=True,
                           timeout=120)
 
 
@@ -48,7 +48,7 @@ def test_up_runs_gateway_and_worker(settings, tmp_path):
     port = free_port()
     log = tmp_path / "up.log"
     with open(log, "wb") as fh:
-        p = subprocess.Popen([sys.executable, "-m", "core", "up", "--port", str(port), "--workers", "1"], env=env,
+        p = subprocess.Popen([sys.executable, "-m", "services.cli", "up", "--port", str(port), "--workers", "1"], env=env,
                              cwd=REPO, stdout=fh, stderr=subprocess.STDOUT, start_new_session=True)
     try:
         key = wait_for(lambda: (re.findall(r"operator key \(shown once, stored hashed\): (\S+)",
