@@ -130,7 +130,7 @@ def lighting(scenes: list[Path]) -> dict:
     from dataclasses import replace
 
     from core.gen.lighting import (LightingSettings, brightest_direction, envmap_log_error, estimate_from_bundle,
-                                   sun_direction_error_deg)
+                                   sky_statistics, sun_direction_error_deg)
 
     out = {}
     for sc in scenes:
@@ -138,7 +138,7 @@ def lighting(scenes: list[Path]) -> dict:
         gt = b.load_envmap()
         sun_gt = brightest_direction(gt)
         rec = {"envmap": b.manifest.ground_truth.envmap_name,
-               "rotation_deg": b.manifest.ground_truth.envmap_rotation_deg}
+               "rotation_deg": b.manifest.ground_truth.envmap_rotation_deg, "ground_truth_sky": sky_statistics(gt)}
         # the headline uses the ground-truth geometry as occluders (it already stands in for the
         # reconstruction's depth and normals); the other two show what each cue is worth
         for occ, model in (("oracle", None), ("oracle", "lambert"), ("none", None), ("lidar", None)):

@@ -175,6 +175,29 @@ def brightest_direction(env) -> np.ndarray:
     return pixel_to_direction(r, c, *lum.shape)
 
 
+def sky_statistics(env, sun_radius_deg: float = 3.0) -> dict:
+    """How sunny a map is (a ground-truth map's conditions, beside a sun error): the sun is its
+    brightest pixel, its disc everything within ``sun_radius_deg``.
+
+    Returns ``sun_elevation_deg``; ``direct_fraction``: the disc's share of the irradiance on a
+    horizontal surface (clear sky with a high sun: 0.7-0.9; overcast: 0); ``sun_share``: the
+    disc's share of the map's total power (radiance x solid angle)."""
+    e = require_finite_np(np.asarray(env, np.float64), "env")
+    if e.ndim != 3 or e.shape[2] != 3 or e.shape[1] != 2 * e.shape[0]:
+        raise ShapeError(f"env: expected [H, 2H, 3], got {list(e.shape)}")
+    h, w = e.shape[:2]
+    lum = e.mean(-1).reshape(-1)
+    dirs = envmap_directions(h, w).reshape(-1, 3)
+    d_omega = np.repeat(envmap_solid_angles(h, w), w)
+    sun = brightest_direction(e)
+    disc = dirs @ sun >= math.cos(math.radians(sun_radius_deg))
+    horiz = lum * d_omega * np.maximum(dirs[:, 2], 0.0)
+    total_h, total = float(horiz.sum()), float((lum * d_omega).sum())
+    return {"sun_elevation_deg": float(np.degrees(np.arcsin(np.clip(sun[2], -1.0, 1.0)))),
+            "direct_fraction": float(horiz[disc].sum() / total_h) if total_h > 0 else 0.0,
+            "sun_share": float((lum * d_omega)[disc].sum() / total) if total > 0 else 0.0}
+
+
 def envmap_log_error(est, gt, low_res: tuple[int, int] = (64, 128)) -> dict:
     """Log-space errors of an estimated map against ground truth (same convention): mean
     |log(1 + E_est) - log(1 + E_gt)| per pixel weighted by solid angle, at full resolution

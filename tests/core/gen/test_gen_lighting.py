@@ -30,6 +30,30 @@ def test_compose_envmap_sun_irradiance_is_exact():
     assert L.envmap_log_error(env, env)["log_l1"] == 0.0
 
 
+
+def test_sky_statistics_of_a_sun_over_a_uniform_sky():
+    """A unit-radiance upper hemisphere (horizontal irradiance pi) plus a 1-degree disc of normal
+    irradiance 2 pi at 30 degrees elevation: direct fraction pi / (pi + pi) = 1/2 (up to the
+    sky the disc covers); overcast (no disc): close to 0."""
+    from core.conventions import envmap_directions
+
+    h = 256
+    dirs = envmap_directions(h, 2 * h)
+    env = np.repeat((dirs[..., 2:] > 0).astype(np.float64), 3, -1)
+    overcast = L.sky_statistics(env)
+    assert overcast["direct_fraction"] < 0.01 and overcast["sun_share"] < 0.01
+    sun = L._sph(math.radians(70.0), math.radians(30.0))
+    disc = dirs @ sun >= math.cos(math.radians(1.0))
+    omega = np.repeat(envmap_solid_angles(h, 2 * h)[:, None], 2 * h, 1)
+    env[disc] = 2 * math.pi / np.sum(omega[disc] * (dirs[disc] @ sun))
+    st = L.sky_statistics(env)
+    assert st["sun_elevation_deg"] == pytest.approx(30.0, abs=1.0)  # a pixel of the 1-degree disc
+    assert st["direct_fraction"] == pytest.approx(0.5, abs=0.01)
+    assert st["sun_share"] == pytest.approx(2 * math.pi / (2 * math.pi + 2 * math.pi), abs=0.01)
+    with pytest.raises(ShapeError, match="env"):
+        L.sky_statistics(np.ones((4, 4, 3)))
+
+
 def test_shading_fit_recovers_sun_on_lambertian_samples():
     """Samples that follow the model exactly (plus 3% noise): the search must find the sun."""
     rng = np.random.default_rng(1)
