@@ -80,7 +80,7 @@ def main(argv=None) -> int:
 
     from core.bundle import open_bundle
     from core.gen.lighting import brightest_direction, estimate_from_bundle, sun_direction_error_deg
-    from core.synth import generate_scene, profile
+    from train_generative import generate_street
 
     from core.errors import CoreError
 
@@ -97,11 +97,7 @@ def main(argv=None) -> int:
     for name in a.streets:
         root = a.data / name
         seed, env, rot = plan[name]
-        if not (root / "bundle.json").is_file():
-            t = time.perf_counter()
-            generate_scene(profile("quick", seed=seed, envmap=env, envmap_rotation_deg=rot, relight_envmaps=()), root,
-                           progress=False, workers=2)
-            print(f"generated {name} ({env} at {rot:.0f} deg) in {time.perf_counter() - t:.0f} s", flush=True)
+        generate_street(root, seed, env, rot)
         t = time.perf_counter()
         est = estimate_from_bundle(root, "train", settings=settings, occluders="oracle")
         err = sun_direction_error_deg(est.sun_dir, brightest_direction(open_bundle(root, validate=False).load_envmap()))

@@ -54,17 +54,21 @@ def scene_plan(seeds) -> list[tuple[str, int, str, float]]:
     return out
 
 
-def generate(data: Path, seeds) -> None:
+def generate_street(root: Path, seed: int, env: str, rot: float) -> None:
+    """One street (``quick`` profile, no relit ground truth) at ``root`` unless it is there."""
     from core.synth import generate_scene, profile
 
+    if (root / "bundle.json").is_file():
+        return
+    t = time.perf_counter()
+    cfg = profile("quick", seed=seed, envmap=env, envmap_rotation_deg=rot, relight_envmaps=())
+    generate_scene(cfg, root, progress=False, workers=2)
+    print(f"generated {root.name} (seed {seed}, {env} at {rot:.0f} deg) in {time.perf_counter() - t:.0f} s", flush=True)
+
+
+def generate(data: Path, seeds) -> None:
     for name, seed, env, rot in scene_plan(seeds) + [(f"v{s}", s, e, r) for s, e, r in VALIDATION]:
-        root = data / name
-        if (root / "bundle.json").is_file():
-            continue
-        t = time.perf_counter()
-        cfg = profile("quick", seed=seed, envmap=env, envmap_rotation_deg=rot, relight_envmaps=())
-        generate_scene(cfg, root, progress=False, workers=2)
-        print(f"generated {name} (seed {seed}, {env} at {rot:.0f} deg) in {time.perf_counter() - t:.0f} s", flush=True)
+        generate_street(data / name, seed, env, rot)
 
 
 def prepare(data: Path, seeds) -> None:
