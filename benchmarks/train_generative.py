@@ -7,7 +7,8 @@ Steps (each skips what is already done, so the script resumes after an interrupt
    courtyard, sunrise, rotations from {0, 60, ..., 300} degrees; and the held-out scenes (seeds
    7 and 8, city and sunset at rotations 45 and 135 degrees: seeds and rotations never used in
    training), and the validation streets ``v9``/``v10`` (sunrise at 90, forest at 210 degrees:
-   model and sampler choices are made on these, never on the held-out ones) under ``--data``.
+   model and sampler choices are made on these, never on the held-out ones), and the lighting
+   prior's own held-out streets h15-h17 (``HELD_OUT_LIGHTING``) under ``--data``.
 2. ``prepare``: the forward model's inputs, PBR renders of perturbed oracle scenes at 16 rays per
    pixel (``core.gen.prepare``), for every scene.
 3. ``inverse`` / ``forward``: train that model for ``--steps`` steps (``core.gen.train``; resumes
@@ -43,6 +44,9 @@ TRAIN_ROTATIONS = (0.0, 60.0, 120.0, 180.0, 240.0, 300.0)
 HELD_OUT = ((7, "city", 45.0), (8, "sunset", 135.0))
 #: Validation streets (model and sampler choices): neither training seeds/rotations nor held-out.
 VALIDATION = ((9, "sunrise", 90.0), (10, "forest", 210.0))
+#: Held-out streets of the lighting prior alone (sunny maps, seeds and rotations used nowhere else;
+#: added after h7 had been used to diagnose the sun search): made by ``generate``, not prepared.
+HELD_OUT_LIGHTING = ((15, "city", 165.0), (16, "sunrise", 15.0), (17, "city", 255.0))
 
 
 def scene_plan(seeds) -> list[tuple[str, int, str, float]]:
@@ -67,7 +71,8 @@ def generate_street(root: Path, seed: int, env: str, rot: float) -> None:
 
 
 def generate(data: Path, seeds) -> None:
-    for name, seed, env, rot in scene_plan(seeds) + [(f"v{s}", s, e, r) for s, e, r in VALIDATION]:
+    for name, seed, env, rot in (scene_plan(seeds) + [(f"v{s}", s, e, r) for s, e, r in VALIDATION]
+                                 + [(f"h{s}", s, e, r) for s, e, r in HELD_OUT_LIGHTING]):
         generate_street(data / name, seed, env, rot)
 
 

@@ -5,14 +5,16 @@ The upper hemisphere is cut into ``bands x sectors`` patches of equal solid angl
 in z = sine of the elevation, sectors uniform in azimuth). For a surface sample i (world point
 p_i, unit normal n_i) the transport of patch k is
 
-    T[i, k] = 1/pi  sum_m  V(p_i, w_km) max(0, n_i . w_km) dw        (m: rays in patch k)
+    T[i, k] = sum_m  V(p_i, w_km) W_i(w_km) dw        (m: rays in patch k)
 
-so that a sky of radiance x_k on patch k gives the Lambertian shading (radiance / albedo)
-sum_k T[i, k] x_k. A ray the occluders stop brings the radiance the frames saw where it hits
+with W_i the reflectance weight of the sample: ``max(0, n_i . w) / pi`` for a Lambertian
+surface (:func:`lambert_weights`), or the paper's BRDF times the cosine over the albedo
+(:func:`paper_brdf_weights`, which needs the direction the sample was seen from), so that a sky
+of radiance x_k on patch k gives the shading (radiance / albedo) sum_k T[i, k] x_k. A ray the occluders stop brings the radiance the frames saw where it hits
 (bisected shadow-ray length, looked up in the frames by depth): the interreflection, which in
 a street canyon is about a third of the light on the road; hits no frame saw get one unknown
 radiance per patch. The ground (lower hemisphere, unoccluded, radiance g) adds g (1 - n_z) / 2,
-a sun of irradiance e in direction s adds e V(p_i, s) max(0, n_i . s) / pi. For a candidate s
+a sun of irradiance e in direction s adds e V(p_i, s) W_i(s). For a candidate s
 the non-negative (x, g, e) are fitted by least squares with two priors: patches the camera saw
 as unclipped sky should keep their observed radiance, and neighbouring patches should be alike.
 The candidate with the smallest mean |residual| over the samples is the sun.
@@ -74,6 +76,66 @@ class TransportSettings:
             raise ConfigError(f"TransportSettings: weights must be >= 0, got {self}")
 
 
+#: Floor of the albedo a BRDF weight is divided by (the shading of the lighting prior divides the
+#: radiance by the same floor: both sides of the fit stay in one unit).
+ALBEDO_FLOOR = 0.02
+
+
+def lambert_weights(normals):
+    """``weights(dirs [D, 3]) -> [N, D]``: the Lambertian shading weight ``max(0, n . d) / pi``
+    of every sample (normals [N, 3] world, unit) towards every direction (the transport of a
+    diffuse surface, radiance / albedo per unit radiance and solid angle)."""
+    n = np.asarray(normals, np.float64)
+
+    def weights(dirs):
+        return np.maximum(n @ np.asarray(dirs, np.float64).reshape(-1, 3).T, 0.0) / math.pi
+    return weights
+
+
+def paper_brdf_weights(normals, view_dirs, albedo, roughness, metallic, chunk: int = 64):
+    """``weights(dirs [D, 3]) -> [N, D]``: ``mean_c f_c(d, wo) max(0, n . d) / max(albedo_c,
+    ALBEDO_FLOOR)`` with f the paper's BRDF (:func:`core.pbr.brdf.cook_torrance`: Lambert plus
+    GGX microfacet, F0 0.04 for dielectrics). For a diffuse surface this is the Lambertian weight;
+    a rough dark surface seen at a grazing angle towards the light (asphalt ahead of the camera,
+    sun ahead) reflects several times more.
+
+    Args:
+        normals: [N, 3] world unit normals; view_dirs: [N, 3] world unit directions from each
+            sample towards the camera that saw it (``wo``).
+        albedo: [N, 3]; roughness, metallic: [N].
+    """
+    import torch
+
+    from core.pbr.brdf import cook_torrance
+
+    n = torch.from_numpy(np.asarray(normals, np.float64).reshape(-1, 3))
+    m = len(n)
+    wo = torch.from_numpy(np.asarray(view_dirs, np.float64).reshape(-1, 3))
+    alb = torch.from_numpy(np.asarray(albedo, np.float64).reshape(-1, 3))
+    rough = torch.from_numpy(np.asarray(roughness, np.float64).reshape(-1, 1))
+    metal = torch.from_numpy(np.asarray(metallic, np.float64).reshape(-1, 1))
+    if not (wo.shape == alb.shape == (m, 3) and rough.shape == metal.shape == (m, 1)):
+        raise ShapeError(f"normals {tuple(n.shape)}, view_dirs {tuple(wo.shape)}, albedo {tuple(alb.shape)}, "
+                         f"roughness / metallic {tuple(rough.shape)} / {tuple(metal.shape)}: expected [N, 3] x3, [N] x2")
+    for name, t in (("view_dirs", wo), ("albedo", alb), ("roughness", rough), ("metallic", metal)):
+        require_finite_np(t.numpy(), name)
+    inv_alb = 1.0 / alb.clamp_min(ALBEDO_FLOOR)
+
+    def weights(dirs):
+        d = torch.from_numpy(np.asarray(dirs, np.float64).reshape(-1, 3))
+        out = torch.empty(m, len(d), dtype=torch.float64)
+        for j in range(0, len(d), chunk):
+            dj = d[j:j + chunk]
+            k = len(dj)
+            f = cook_torrance(n[:, None].expand(m, k, 3), dj[None].expand(m, k, 3), wo[:, None].expand(m, k, 3),
+                              alb[:, None].expand(m, k, 3), rough[:, None].expand(m, k, 1),
+                              metal[:, None].expand(m, k, 1))
+            cos = (n @ dj.T).clamp_min(0.0)
+            out[:, j:j + k] = (f * inv_alb[:, None]).mean(-1) * cos
+        return out.numpy()
+    return weights
+
+
 def patch_of(dirs, bands: int, sectors: int) -> np.ndarray:
     """Patch index [...] of world directions [..., 3] (-1 below the horizon)."""
     d = np.asarray(dirs, np.float64)
@@ -122,10 +184,14 @@ class SkyTransport:
         sky_clipped: [S] bool, the pixel was clipped (its radiance only a lower bound); a patch
             seen mostly clipped is bounded from below instead of held at its median.
         settings: :class:`TransportSettings`.
+        weights: ``(dirs [D, 3]) -> [N, D]``, the reflectance weight of each sample towards each
+            light direction in the unit of ``shading`` (:func:`paper_brdf_weights`); default
+            :func:`lambert_weights` (``shading`` = radiance / albedo of diffuse surfaces). The
+            ground term stays Lambertian.
     """
 
     def __init__(self, points, normals, shading, visibility=None, sky_dirs=None, sky_radiance=None,
-                 settings: TransportSettings | None = None, radiance_at=None, sky_clipped=None):
+                 settings: TransportSettings | None = None, radiance_at=None, sky_clipped=None, weights=None):
         s = settings or TransportSettings()
         self.settings = s
         p = require_finite_np(np.asarray(points, np.float64), "points")
@@ -135,12 +201,12 @@ class SkyTransport:
             raise ShapeError(f"points {p.shape}, normals {n.shape}, shading {y.shape}: expected [N, 3], [N, 3], [N]")
         self.points, self.normals, self.shading = p, n, y
         self.visibility = visibility
+        self.weights = weights or lambert_weights(n)
         k = s.bands * s.sectors
         rng = np.random.default_rng(s.seed)
         rays = patch_rays(s.bands, s.sectors, s.rays_per_patch, rng)  # [K, M, 3]
         d_omega = 2 * math.pi / k / s.rays_per_patch
-        cos = np.maximum(np.einsum("nc,kmc->nkm", n, rays), 0.0)  # [N, K, M]
-        wgt = cos / math.pi  # shading weight of each ray (Lambertian)
+        wgt = self._weights(rays.reshape(-1, 3)).reshape(len(p), k, s.rays_per_patch)  # [N, K, M]
         vis = self._vis(rays.reshape(-1, 3)).reshape(len(p), k, s.rays_per_patch)
         self.patch_T = (vis * wgt).sum(-1) * d_omega  # [N, K]
         # rays that hit an occluder see its radiance instead (interreflection: in a street the
@@ -150,7 +216,7 @@ class SkyTransport:
         self.indirect = np.zeros(len(p))
         self.known_fraction = 0.0
         if radiance_at is not None and visibility is not None and s.interreflection:
-            blocked = np.flatnonzero((vis < 0.5) & (cos > 0))
+            blocked = np.flatnonzero((vis < 0.5) & (wgt > 0))
             if len(blocked):
                 i_s, rest = np.divmod(blocked, k * s.rays_per_patch)
                 dirs = rays.reshape(-1, 3)[rest]
@@ -202,6 +268,13 @@ class SkyTransport:
             raise ConfigError("visibility: must return [M] finite values")
         return np.clip(v, 0.0, 1.0)
 
+    def _weights(self, dirs) -> np.ndarray:
+        """Reflectance weights [N, D] of the samples towards dirs [D, 3] (checked)."""
+        wgt = np.asarray(self.weights(dirs), np.float64)
+        if wgt.shape != (len(self.points), len(dirs)):
+            raise ShapeError(f"weights: expected [{len(self.points)}, {len(dirs)}], got {wgt.shape}")
+        return require_finite_np(np.maximum(wgt, 0.0), "weights")
+
     def _hit_distance(self, origins, dirs) -> np.ndarray:
         """Distance [M] (metres) along each ray where the visibility falls below 1/2 (bisection
         in log distance between 0.05 and 300 m)."""
@@ -238,10 +311,11 @@ class SkyTransport:
         return np.asarray(rows).reshape(-1, nc), np.asarray(b)
 
     def sun_columns(self, dirs) -> np.ndarray:
-        """Sun transport [N, D] of candidate sun directions dirs [D, 3] (unit irradiance)."""
+        """Sun transport [N, D] of candidate sun directions dirs [D, 3] (unit irradiance):
+        visibility times the reflectance weight."""
         d = np.asarray(dirs, np.float64).reshape(-1, 3)
         v = self._vis(d).reshape(len(self.points), len(d))
-        return v * np.maximum(self.normals @ d.T, 0.0) / math.pi
+        return v * self._weights(d)
 
     def fit(self, sun_col, shading=None):
         """Non-negative (sky radiance per patch [K], occluder radiance per patch [K] (with

@@ -259,10 +259,13 @@ def oracle_gaussians(parts, camera_positions, fx: float, settings: OracleSetting
     quats = _rotmat_to_quat(rot)
     l1 = np.linalg.norm(e1, axis=-1)
     h2 = nl[:, 0] / np.maximum(l1, 1e-12)  # height of the triangle across e1
-    edge = np.maximum(l1, np.linalg.norm(e2, axis=-1))
-    # anisotropic: never wider than the lattice step across a thin triangle (poles, wheels)
-    s1 = np.where(n1 == 0, np.minimum(sp, 0.5 * edge), np.minimum(sp, l1 / np.maximum(n1, 1)))
-    s2 = np.where(n1 == 0, np.minimum(sp, 0.5 * edge), np.minimum(sp, np.maximum(h2 / np.maximum(n2, 1), 1e-4)))
+    # anisotropic: never wider than the lattice step across a thin triangle (poles, wheels); a
+    # single-Gaussian sliver (a window's 6 cm side face) never wider than half its own width
+    # across it (isotropic at half the longest edge, it stood ~0.7 m out of the facade and
+    # shadowed the wall from a grazing sun)
+    s1 = np.where(n1 == 0, np.minimum(sp, 0.5 * l1), np.minimum(sp, l1 / np.maximum(n1, 1)))
+    s2 = np.where(n1 == 0, np.minimum(sp, np.maximum(0.5 * h2, 1e-4)),
+                  np.minimum(sp, np.maximum(h2 / np.maximum(n2, 1), 1e-4)))
     band = fine_w > 0
     s1p = np.where(band, fine_w, s1[tri_of])
     s2p = np.where(band, fine_w, s2[tri_of])
