@@ -1,6 +1,6 @@
 """Sun-direction error of the lighting prior on the development and validation streets (the
 figures quoted in ``core/gen/lighting.py`` and ``core/gen/sky_transport.py``; choices are made on
-these, never on the held-out h7/h8 of ``bench_generative.py``).
+these, never on the held-out h7, h8, h15-h17 of ``bench_generative.py``).
 
 Streets (``quick`` profile, no relit ground truth; generated under ``--data`` when missing, about
 70 s each): the sunny training-plan streets of ``train_generative.py`` (city, sunrise and sunset

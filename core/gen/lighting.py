@@ -618,7 +618,8 @@ def estimate_from_bundle(root, split: str = "train", settings: LightingSettings 
     starts from; ``"oracle"``: the synthetic street's ground-truth meshes as thin Gaussians
     (:func:`core.pbr.oracle.street_scene_graph`, static parts at time 0), the stand-in for a
     converged reconstruction: a face lattice of ``oracle_gaussians`` Gaussians plus 4x finer
-    bands along the face edges (:data:`ORACLE_EDGE_REFINE`; about 3x as many in all).
+    bands along the face edges (:data:`ORACLE_EDGE_REFINE`; about 3x as many in all), thin
+    slivers (:attr:`core.pbr.oracle.OracleSettings.thin_slivers`).
     """
     from core.bundle import open_bundle
 
@@ -679,7 +680,8 @@ def occluder_tracer(bundle, occluders: str, oracle_gaussians: int = ORACLE_GAUSS
         from core.pbr.oracle import OracleSettings, street_scene_graph
 
         cfg = synth_config_of(bundle)
-        graph, _, _ = street_scene_graph(cfg, (0,), settings=OracleSettings(max_spacing=ORACLE_MAX_SPACING_M, edge_refine=ORACLE_EDGE_REFINE),
+        graph, _, _ = street_scene_graph(cfg, (0,), settings=OracleSettings(max_spacing=ORACLE_MAX_SPACING_M, edge_refine=ORACLE_EDGE_REFINE,
+                                                                     thin_slivers=True),
                                          budget=int(oracle_gaussians))
         g = graph.compose(0.0)
     else:
