@@ -322,7 +322,8 @@ def _search_sun(score, s: LightingSettings):
             break
         if all(grid[i] @ grid[j] < math.cos(2.5 * step) for j in starts):
             starts.append(int(i))
-    best_res, ba, be = math.inf, a_.ravel()[int(np.argmin(res))], e_.ravel()[int(np.argmin(res))]
+    b0 = int(np.argmin(res))
+    best_res, ba, be = math.inf, a_.ravel()[b0], e_.ravel()[b0]
     for i in starts:
         ca, ce, cr = a_.ravel()[i], e_.ravel()[i], float(res[i])
         for fine in (step / 4, step / 16):
@@ -680,9 +681,8 @@ def occluder_tracer(bundle, occluders: str, oracle_gaussians: int = ORACLE_GAUSS
         from core.pbr.oracle import OracleSettings, street_scene_graph
 
         cfg = synth_config_of(bundle)
-        graph, _, _ = street_scene_graph(cfg, (0,), settings=OracleSettings(max_spacing=ORACLE_MAX_SPACING_M, edge_refine=ORACLE_EDGE_REFINE,
-                                                                     thin_slivers=True),
-                                         budget=int(oracle_gaussians))
+        st = OracleSettings(max_spacing=ORACLE_MAX_SPACING_M, edge_refine=ORACLE_EDGE_REFINE, thin_slivers=True)
+        graph, _, _ = street_scene_graph(cfg, (0,), settings=st, budget=int(oracle_gaussians))
         g = graph.compose(0.0)
     else:
         raise ConfigError(f"occluders: must be 'none', 'lidar' or 'oracle', got {occluders!r}")

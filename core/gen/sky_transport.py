@@ -10,8 +10,9 @@ p_i, unit normal n_i) the transport of patch k is
 with W_i the reflectance weight of the sample: ``max(0, n_i . w) / pi`` for a Lambertian
 surface (:func:`lambert_weights`), or the paper's BRDF times the cosine over the albedo
 (:func:`paper_brdf_weights`, which needs the direction the sample was seen from), so that a sky
-of radiance x_k on patch k gives the shading (radiance / albedo) sum_k T[i, k] x_k. A ray the occluders stop brings the radiance the frames saw where it hits
-(bisected shadow-ray length, looked up in the frames by depth): the interreflection, which in
+of radiance x_k on patch k gives the shading (radiance / albedo) sum_k T[i, k] x_k. A ray the
+occluders stop brings the radiance the frames saw where it hits (bisected shadow-ray length,
+looked up in the frames by depth): the interreflection, which in
 a street canyon is about a third of the light on the road; hits no frame saw get one unknown
 radiance per patch. The ground (lower hemisphere, unoccluded, radiance g) adds g (1 - n_z) / 2,
 a sun of irradiance e in direction s adds e V(p_i, s) W_i(s). For a candidate s
