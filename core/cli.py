@@ -1,6 +1,7 @@
 """``brdf``: the command-line entry point of the BRDFusion library (no server needed).
 
-Subcommands: generate, validate, import, render, info, pack, unpack. The installed ``brdf`` command
+Subcommands: generate, validate, import, render, reconstruct, relight, night, evaluate, info, pack,
+unpack. The installed ``brdf`` command
 is :func:`services.cli.main`, which adds the rendering service's serve, worker, up and keys through
 ``extensions`` (so ``core`` imports no server code; ``python -m core`` has the library's commands
 only).
@@ -101,24 +102,162 @@ def cmd_render(a: argparse.Namespace) -> int:
     return 0
 
 
-def cmd_train(a: argparse.Namespace) -> int:
-    from dataclasses import replace
+def _parse_sets(items) -> dict[str, dict]:
+    """``--set stage.field=value`` -> ``{stage: {field: value}}`` (values parsed as JSON when they
+    look like numbers, booleans, lists or objects)."""
+    out: dict[str, dict] = {}
+    for kv in items or []:
+        if "=" not in kv or "." not in kv.split("=", 1)[0]:
+            raise CoreError(f"--set: expected stage.field=value, got {kv!r}")
+        k, v = kv.split("=", 1)
+        stage, fld = k.split(".", 1)
+        try:
+            val = json.loads(v) if v[:1] in "0123456789-[{tfn\"" else v
+        except ValueError as exc:
+            raise CoreError(f"--set {kv}: value is not valid JSON ({exc})") from None
+        out.setdefault(stage, {})[fld] = val
+    return out
 
-    from core.train.nvs import NVS_PROFILES, train_nvs
 
-    if a.profile not in NVS_PROFILES:
-        raise CoreError(f"--profile: unknown profile {a.profile!r} (known: {sorted(NVS_PROFILES)})")
-    cfg = NVS_PROFILES[a.profile]
-    if a.iterations is not None:
-        cfg = replace(cfg, iterations=a.iterations)
+def _stage_line(name: str, s: dict) -> str:
+    bits = [f"{name}: {s.get('seconds', 0):.0f} s"]
+    for k, label in (("test_psnr", "held-out PSNR {:.2f} dB"), ("gaussians", "{} Gaussians"),
+                     ("photometric_psnr_fitted", "PBR photometric PSNR {:.2f} dB"),
+                     ("sky_floaters_pruned", "{} sky floaters pruned")):
+        if isinstance(s.get(k), (int, float)):
+            bits.append(label.format(s[k]))
+    for sk in s.get("skipped") or []:
+        bits.append(f"skipped: {sk}")
+    return "  " + "; ".join(bits)
+
+
+def cmd_reconstruct(a: argparse.Namespace) -> int:
+    from core.stages.chain import run_pipeline
+
     b = _open_any(a.scene)
-    out = Path(a.out) if a.out else REPO_ROOT / "runs" / f"{b.name}_nvs_{a.profile}"
-    s = train_nvs(b, cfg, out, progress=not a.quiet)
-    print(f"scene {b.name!r}, profile {a.profile}: {s['iterations']} iterations in {s['train_seconds']} s, "
-          f"{s['gaussians']} Gaussians")
-    print(f"  held-out (test trajectory) PSNR {s['test_psnr']:.2f} dB, SSIM {s['test_ssim']:.3f}; "
-          f"train PSNR {s['train_psnr']:.2f} dB")
-    print(f"  outputs: {out}")
+    out = Path(a.out) if a.out else REPO_ROOT / "runs" / f"{b.name}_{a.profile}"
+
+    def on_stage(name, what, summary):
+        if a.quiet:
+            return
+        if what == "start":
+            print(f"stage {name} ...", flush=True)
+        elif what == "skip":
+            print(f"stage {name}: done already (--resume)")
+        else:
+            print(_stage_line(name, summary), flush=True)
+
+    res = run_pipeline(b.root, out, a.profile, stages=a.stages, resume=a.resume, progress=not a.quiet,
+                       overrides=_parse_sets(a.set), iterations_scale=a.iterations_scale, on_stage=on_stage)
+    total = sum(float(s.get("seconds") or 0) for s in res.values())
+    print(f"reconstruction of {b.name!r} ({a.profile}): stages {list(res)} in {total:.0f} s")
+    print(f"  run directory: {out}")
+    return 0
+
+
+def _scenario_common(a, bundle):
+    """Views, fps, lights and edits of a relight / night request from the command line."""
+    from core.relight import ObjectEdit
+    from core.render.scenario import LightSpec, load_path_json, views_from_frames
+
+    if a.path in (None, "captured"):
+        views, fps = views_from_frames(bundle, a.split, a.start, a.stop, a.step), a.fps
+    else:
+        views, fps = load_path_json(bundle, a.path)
+    lights = []
+    if a.lights:
+        spec = _read_json(a.lights, "--lights")
+        items = spec.get("lights", spec) if isinstance(spec, dict) else spec
+        if not isinstance(items, list):
+            raise CoreError(f"--lights {a.lights}: expected a list of lights (or {{\"lights\": [...]}})")
+        lights = [LightSpec.from_dict(x, f"--lights[{i}]") for i, x in enumerate(items)]
+    edits = []
+    if getattr(a, "edits", None):
+        spec = _read_json(a.edits, "--edits")
+        items = spec.get("edits", spec) if isinstance(spec, dict) else spec
+        if not isinstance(items, list):
+            raise CoreError(f"--edits {a.edits}: expected a list of edits (or {{\"edits\": [...]}})")
+        for i, e in enumerate(items):
+            if not isinstance(e, dict) or "op" not in e or "object_id" not in e:
+                raise CoreError(f"--edits[{i}]: needs op and object_id")
+            edits.append(ObjectEdit(e["op"], e["object_id"], e.get("source_object_id"),
+                                    tuple(e.get("offset_m", (0.0, 0.0, 0.0))), float(e.get("yaw_deg", 0.0))))
+    return views, fps, lights, edits
+
+
+def _read_json(path: str, what: str):
+    p = Path(path)
+    try:
+        return json.loads(p.read_text())
+    except (OSError, ValueError) as exc:
+        raise CoreError(f"{what} {p}: not a readable JSON file ({exc})") from None
+
+
+def _render_and_report(run, a, scenario, kind: str) -> int:
+    from core.render.scenario import render_scenario
+    from tqdm import tqdm
+
+    graph, _sky, stage = run.load_scene()
+    out = Path(a.out)
+    bar = tqdm(total=len(scenario.views), desc=kind, unit="frame", disable=a.quiet)
+    try:
+        res = render_scenario(graph, scenario, out, on_frame=lambda d, n: bar.update(1))
+    finally:
+        bar.close()
+    r = res.result
+    print(f"{kind}: {res.frames} frame(s) of the {stage} reconstruction, {res.lights} light(s), "
+          f"{r.seconds_per_frame:.2f} s per frame, denoiser {r.denoiser}"
+          + (f" ({r.denoiser_note})" if r.denoiser_note else ""))
+    print(f"  EXR (HDR beauty + G-buffers): {out / 'frames'}")
+    if r.video:
+        print(f"  video: {r.video}")
+    if r.preview:
+        print(f"  preview: {r.preview}")
+    return 0
+
+
+def cmd_relight(a: argparse.Namespace) -> int:
+    from core.io.hdri import load_hdri
+    from core.render.scenario import Scenario
+    from core.stages.chain import RunDir
+
+    run = RunDir(a.run)
+    b = _open_any(str(run.scene_path()))
+    views, fps, lights, edits = _scenario_common(a, b)
+    m = b.manifest
+    sc = Scenario(tuple(views), load_hdri(a.envmap), rotation_deg=a.rotation, lights=tuple(lights), edits=tuple(edits),
+                  exposure_ev=a.exposure, base_exposure=m.ldr_exposure, gamma=m.ldr_gamma, rays_per_pixel=a.rays,
+                  shadows=not a.no_shadows, denoiser=a.denoiser, fps=fps)
+    return _render_and_report(run, a, sc, "relight")
+
+
+def cmd_night(a: argparse.Namespace) -> int:
+    from core.io.envmap_file import read_envmap
+    from core.render.scenario import Scenario
+    from core.stages.chain import RunDir
+
+    run = RunDir(a.run)
+    env_path, _ = run.latest_envmap()
+    if env_path is None:
+        raise CoreError(f"{a.run}: the reconstruction has no recovered sky (run the pbr stage: "
+                        f"brdf reconstruct --resume --stages pbr); night scales the scene's own sky")
+    b = _open_any(str(run.scene_path()))
+    views, fps, lights, edits = _scenario_common(a, b)
+    m = b.manifest
+    sc = Scenario(tuple(views), read_envmap(env_path), sky_scale=a.sky_scale, lights=tuple(lights), edits=tuple(edits),
+                  headlights=not a.no_headlights, headlight_intensity=a.headlight_intensity, exposure_ev=a.exposure,
+                  base_exposure=m.ldr_exposure, gamma=m.ldr_gamma, rays_per_pixel=a.rays, denoiser=a.denoiser, fps=fps)
+    return _render_and_report(run, a, sc, "night")
+
+
+def cmd_evaluate(a: argparse.Namespace) -> int:
+    from core.evaluate import EvalSettings, evaluate_run
+
+    b = _open_any(a.scene) if a.scene else None
+    s = EvalSettings(rays_per_pixel=a.rays, denoiser=a.denoiser, max_frames=a.max_frames)
+    res = evaluate_run(a.run, b, s, out=a.out, on_step=None if a.quiet else (lambda m: print(f"  {m} done", flush=True)))
+    print(json.dumps(res["summary"], indent=1))
+    print(f"  written: {Path(a.out or a.run) / 'evaluation.json'}")
     return 0
 
 
@@ -191,13 +330,60 @@ def build_parser(extensions=()) -> argparse.ArgumentParser:
     r.add_argument("--quiet", action="store_true")
     r.set_defaults(fn=cmd_render)
 
-    t = sub.add_parser("train", help="fit Gaussians to a scene (volume stage without priors, NVS)")
-    t.add_argument("--scene", default=str(DEFAULT_SCENE), help="bundle dir or archive (default: bundled scene)")
-    t.add_argument("--profile", default="quick", help="tiny | quick | benchmark (default quick)")
-    t.add_argument("--iterations", type=int, default=None, help="override the profile's iterations")
-    t.add_argument("--out", default=None, help="output directory (default runs/<scene>_nvs_<profile>)")
-    t.add_argument("--quiet", action="store_true")
-    t.set_defaults(fn=cmd_train)
+    rc = sub.add_parser("reconstruct", help="run the inverse-rendering pipeline (the paper's five stages)")
+    rc.add_argument("--scene", default=str(DEFAULT_SCENE), help="bundle dir or archive (default: bundled scene)")
+    rc.add_argument("--profile", default="quick", help="tiny | quick | benchmark | paper (default quick)")
+    rc.add_argument("--stages", default=None, help="comma-separated subset of volume,generative_refine,volume2,"
+                    "pbr,joint (default all, in chain order)")
+    rc.add_argument("--resume", action="store_true", help="continue the run in --out (done stages are kept)")
+    rc.add_argument("--out", default=None, help="run directory (default runs/<scene>_<profile>)")
+    rc.add_argument("--set", action="append", metavar="STAGE.FIELD=VALUE", help="override a stage setting")
+    rc.add_argument("--iterations-scale", type=float, default=1.0, help="scale every stage's iterations")
+    rc.add_argument("--quiet", action="store_true")
+    rc.set_defaults(fn=cmd_reconstruct)
+
+    def shot_args(x):
+        x.add_argument("run", help="a reconstruction run directory (brdf reconstruct --out)")
+        x.add_argument("--out", required=True, help="output directory (EXR frames, MP4, preview PNG)")
+        x.add_argument("--exposure", type=float, default=0.0, help="exposure in EV on top of the capture's")
+        x.add_argument("--lights", default=None, help="JSON file: a list of lights (kind point|spot, position, "
+                       "intensity in candela, direction, color, cone_inner_deg, cone_outer_deg, attach_to)")
+        x.add_argument("--edits", default=None, help="JSON file: a list of object edits (op insert|move|remove, "
+                       "object_id, source_object_id, offset_m, yaw_deg)")
+        x.add_argument("--path", default="captured", help="'captured' (the capture's frames) or a camera path "
+                       "JSON file {camera, fps, poses: [{cam_to_world, time_s}]}")
+        x.add_argument("--split", default="test", choices=["train", "test", "all"], help="frames of --path captured")
+        x.add_argument("--start", type=int, default=0)
+        x.add_argument("--stop", type=int, default=None)
+        x.add_argument("--step", type=int, default=1)
+        x.add_argument("--fps", type=float, default=10.0)
+        x.add_argument("--rays", type=int, default=64, help="PBR rays per pixel")
+        x.add_argument("--denoiser", default="oidn", choices=["none", "oidn", "diffusion"])
+        x.add_argument("--quiet", action="store_true")
+
+    rl = sub.add_parser("relight", help="render a reconstruction under another sky, lights and edits")
+    shot_args(rl)
+    rl.add_argument("--envmap", required=True, help="bundled HDRI name (city, sunset, ...) or an .exr/.hdr file")
+    rl.add_argument("--rotation", type=float, default=0.0, help="rotate the map about +z, degrees")
+    rl.add_argument("--no-shadows", action="store_true", help="no ray-traced visibility (faster, no shadows)")
+    rl.set_defaults(fn=cmd_relight)
+
+    nt = sub.add_parser("night", help="render a reconstruction at night (scaled sky, headlights, lights)")
+    shot_args(nt)
+    nt.add_argument("--sky-scale", type=float, default=0.02, help="multiplier on the recovered sky")
+    nt.add_argument("--no-headlights", action="store_true")
+    nt.add_argument("--headlight-intensity", type=float, default=3000.0, help="candela per headlight")
+    nt.set_defaults(fn=cmd_night, exposure=2.0)
+
+    ev = sub.add_parser("evaluate", help="measure a reconstruction against a bundle's ground truth")
+    ev.add_argument("run", help="a reconstruction run directory")
+    ev.add_argument("--scene", default=None, help="bundle with ground truth (default: the run's scene)")
+    ev.add_argument("--out", default=None, help="where evaluation.json goes (default: the run directory)")
+    ev.add_argument("--rays", type=int, default=64, help="PBR rays per pixel")
+    ev.add_argument("--denoiser", default="oidn", choices=["none", "oidn", "diffusion"])
+    ev.add_argument("--max-frames", type=int, default=0, help="test frames evaluated (0 = all)")
+    ev.add_argument("--quiet", action="store_true")
+    ev.set_defaults(fn=cmd_evaluate)
 
     n = sub.add_parser("info", help="summarise a scene bundle")
     n.add_argument("path")

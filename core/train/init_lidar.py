@@ -149,23 +149,32 @@ def _make(pts, origins, cols, cfg: LidarInitConfig, dtype, exposure: float = 1.0
 
 
 def gaussians_from_lidar(bundle: SceneBundle, cfg: LidarInitConfig = LidarInitConfig(),
-                         dtype: torch.dtype = torch.float32) -> tuple[Gaussians, dict[str, Gaussians]]:
-    """(background Gaussians in world frame, {object id: Gaussians in the object frame})."""
+                         dtype: torch.dtype = torch.float32, sweeps=None) -> tuple[Gaussians, dict[str, Gaussians]]:
+    """(background Gaussians in world frame, {object id: Gaussians in the object frame}).
+
+    ``sweeps``: optional list of ``(time_index, [N, 6] float array: origin xyz, hit xyz, world)``
+    used instead of the bundle's LiDAR (e.g. points unprojected from a depth prior when the bundle
+    has no LiDAR: :func:`sweeps_from_depth`)."""
     m = bundle.manifest
     tone = (float(m.ldr_exposure), float(m.ldr_gamma))
-    if not m.lidar:
-        raise ConfigError("bundle: has no LiDAR sweeps to initialise from")
+    if sweeps is None:
+        if not m.lidar:
+            raise ConfigError("bundle: has no LiDAR sweeps to initialise from")
+        sweeps = [(s.time_index, None) for s in m.lidar]
+    if not sweeps:
+        raise ConfigError("sweeps: no points to initialise from")
     rng = np.random.default_rng(cfg.seed)
     bg_pts, bg_org, bg_t = [], [], []
     obj_pts: dict[str, list] = {o.id: [] for o in m.objects}
     obj_org: dict[str, list] = {o.id: [] for o in m.objects}
     obj_t: dict[str, list] = {o.id: [] for o in m.objects}
-    for s in m.lidar:
-        arr = bundle.load_lidar(s.time_index).astype(np.float64)
+    for ti, arr in sweeps:
+        arr = bundle.load_lidar(ti) if arr is None else arr
+        arr = np.asarray(arr, np.float64)
         org, pts = arr[:, :3], arr[:, 3:]
         free = np.ones(len(pts), bool)
         for o in m.objects:
-            pose = o.poses.get(s.time_index)
+            pose = o.poses.get(ti)
             if pose is None:
                 continue
             local = (pts - pose[:3, 3]) @ pose[:3, :3]
@@ -173,11 +182,11 @@ def gaussians_from_lidar(bundle: SceneBundle, cfg: LidarInitConfig = LidarInitCo
             if inside.any():
                 obj_pts[o.id].append(local[inside])
                 obj_org[o.id].append((org[inside] - pose[:3, 3]) @ pose[:3, :3])
-                obj_t[o.id].append(np.full(int(inside.sum()), s.time_index))
+                obj_t[o.id].append(np.full(int(inside.sum()), ti))
                 free &= ~inside
         bg_pts.append(pts[free])
         bg_org.append(org[free])
-        bg_t.append(np.full(int(free.sum()), s.time_index))
+        bg_t.append(np.full(int(free.sum()), ti))
     pts, org = np.concatenate(bg_pts), np.concatenate(bg_org)
     tidx = np.concatenate(bg_t)
     keys = np.floor(pts / cfg.voxel_size_m).astype(np.int64)
@@ -212,3 +221,28 @@ def gaussians_from_lidar(bundle: SceneBundle, cfg: LidarInitConfig = LidarInitCo
             world[sel] = lp[sel] @ pose[:3, :3].T + pose[:3, 3]
         nodes[o.id] = _make(lp, lo, _colors(bundle, world, lt)[0], cfg, dtype, *tone)
     return background, nodes
+
+
+def sweeps_from_depth(bundle: SceneBundle, depth_by_frame: dict[str, np.ndarray], stride: int = 2,
+                      max_depth_m: float = 80.0) -> list[tuple[int, np.ndarray]]:
+    """Pseudo-LiDAR sweeps ``[(time_index, [N, 6] origin + hit, world)]`` unprojected from
+    per-frame camera z-depth maps ``[H, W(, 1)]`` (metres, 0 = no surface) of the training frames,
+    every ``stride``-th pixel: the initialisation of a bundle without LiDAR."""
+    from core.conventions import camera_ray_directions
+
+    out = []
+    for f in bundle.frames("train"):
+        d = depth_by_frame.get(f.id)
+        if d is None:
+            continue
+        c = bundle.camera(f)
+        d = np.asarray(d, np.float64).reshape(c.height, c.width)[::stride, ::stride]
+        dirs = camera_ray_directions(f.cam_to_world, c.fx, c.fy, c.cx, c.cy, c.width, c.height)[::stride, ::stride]
+        c2w = np.asarray(f.cam_to_world, np.float64)
+        fwd = c2w[:3, 2]
+        ok = (d > 0.3) & (d < max_depth_m)
+        cosf = np.clip(dirs[ok] @ fwd, 1e-3, None)
+        hits = c2w[:3, 3] + dirs[ok] * (d[ok] / cosf)[:, None]
+        org = np.broadcast_to(c2w[:3, 3], hits.shape)
+        out.append((f.time_index, np.concatenate([org, hits], 1)))
+    return out

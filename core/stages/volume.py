@@ -1,8 +1,27 @@
-"""Novel-view-synthesis trainer: the volume stage without generative priors (issue 3).
+"""The volume rendering stage (paper Sec. 3.3, Eq. 4; supplement "Implementation Details").
 
-Fits the scene graph's Gaussians to the training frames with the paper's photometric loss
-(L1 + SSIM), opacity-vs-sky BCE and LiDAR depth, with adaptive density control, and evaluates
-PSNR / SSIM on the held-out (test) trajectory.
+Fits every Gaussian attribute (geometry, colour, normal, albedo, roughness, metallic) of the scene
+graph to the training frames through the volume pass, minimising
+
+    L_vol = L_rgb + l_O L_O + l_D L_D + l_N L_N + l_A L_A + l_R L_R + l_M L_M
+
+* ``L_rgb = (1 - l_ssim) |C - C_gt| + l_ssim (1 - SSIM(C, C_gt))`` with ``C`` the composited
+  colour over the learnable sky dome (:class:`core.train.sky.SkyDome`);
+* ``L_O``: binary cross-entropy of the opacity against the non-sky mask (no sky floaters);
+* ``L_D = |D - D_lidar| + |(u D + v) - D_g|``: LiDAR depth at the pixels a sweep projects to, and
+  the prior depth with ``u, v`` the closed-form least-squares scale and shift per frame;
+* ``L_N = |N - N_g|_1 - N . N_g`` against the prior normals (world frame);
+* ``L_A, L_R, L_M``: L1 against the prior albedo, roughness, metallic.
+
+``D``, ``N``, ``A``, ``R``, ``M`` are the composited G-buffers divided by the opacity (expected
+values given a hit); the prior terms are averaged over pixels that are surface in the non-sky mask
+(or, without a mask, in the prior) and covered by the render (``O > 0.5``). The priors
+(:class:`core.stages.priors.GBufferPriors`) come from the inverse model (first stage) or from the
+generative refinement (second stage, :mod:`core.stages.volume2`). With every prior weight at zero
+this is the colour-only stage (novel-view synthesis; the ablation ``no_gen_optim``).
+
+Also: adaptive density control, checkpoints that resume a killed run, a loss log, and PSNR / SSIM
+on the held-out (test) trajectory.
 """
 
 from __future__ import annotations
@@ -19,7 +38,8 @@ import torch
 
 from core.bundle import SceneBundle
 from core.conventions import camera_ray_directions, project_points
-from core.errors import ConfigError, FormatError
+from core.errors import ConfigError, FormatError, NumericalError
+from core.numerics import safe_normalize
 from core.gaussians import Gaussians
 from core.raster import RasterSettings, rasterize_gaussians
 from core.scene_graph import RigidNode, SceneGraph, transform_gaussians
@@ -30,8 +50,8 @@ from core.train.sky import SkyDome
 
 
 @dataclass(frozen=True)
-class NVSConfig:
-    """Settings of the NVS (volume) trainer."""
+class VolumeSettings:
+    """Settings of the volume stage (and, with ``init_from_graph``, the second volume stage)."""
 
     iterations: int = 2000
     """Optimisation steps (one training frame each)."""
@@ -59,6 +79,30 @@ class NVSConfig:
     """Intra-op threads of torch for the rest of the step (losses, optimiser). One: the tensors
     are small, and torch's OpenMP workers spin between ops and steal the cores the rasterizer
     threads need (measured: a step 3-10x slower with 2)."""
+    lambda_normal: float = 0.3
+    """Weight of the normal prior term L_N (supplement: 0.3)."""
+    lambda_albedo: float = 0.5
+    """Weight of the albedo prior term L_A (supplement: 0.5)."""
+    lambda_roughness: float = 0.3
+    """Weight of the roughness prior term L_R (supplement: 0.3)."""
+    lambda_metallic: float = 0.3
+    """Weight of the metallic prior term L_M (supplement: 0.3)."""
+    lambda_prior_depth: float = 0.01
+    """Weight of the aligned prior depth term ``|(u D + v) - D_g|`` (the paper's lambda_D)."""
+    lambda_align: float = 0.1
+    """Weight of the disk-normal alignment ``mean(1 - |a . n|)`` (``a`` a Gaussian's shortest
+    axis, ``n`` its normal): each Gaussian lies in the surface its normal describes, so tilted
+    disks do not stand out of a surface and shadow it in the PBR pass (not in the paper: its
+    Gaussians are traced by 3DGRT with the same problem; measured here on the default scene)."""
+    prune_sky_floaters: bool = True
+    """At the end of the stage, remove Gaussians whose centre projects into the sky mask in at
+    least half of the training views that see it (floaters: they cast shadows and streak the sky
+    of novel views); the count is in the summary."""
+    prior_min_opacity: float = 0.5
+    """Prior terms count only where the render covers the pixel at least this much."""
+    init_from_graph: bool = False
+    """Start from the previous stage's scene graph and sky (the second volume stage) instead of
+    the LiDAR initialisation."""
     seed: int = 0
     """Random seed (frame order, density control)."""
     init: LidarInitConfig = field(default_factory=LidarInitConfig)
@@ -67,14 +111,6 @@ class NVSConfig:
     """Adaptive density control."""
     lr: GaussianLR = field(default_factory=GaussianLR)
     """Learning rates."""
-
-
-NVS_PROFILES = {
-    "tiny": NVSConfig(iterations=60, densify_from=20, densify_until=50, densify_every=15,
-                      init=LidarInitConfig(max_background_points=3000, max_object_points=300)),
-    "quick": NVSConfig(density=DensityConfig(max_gaussians=80_000)),
-    "benchmark": NVSConfig(iterations=7000, densify_until=4000, opacity_reset_every=3000),
-}
 
 
 @dataclass
@@ -121,7 +157,7 @@ def _views(bundle: SceneBundle, split: str, with_lidar: bool) -> list[_View]:
     return out
 
 
-class NVSModel:
+class VolumeModel:
     """Scene graph + sky + one optimiser and density controller per Gaussian container."""
 
     def __init__(self, graph: SceneGraph, sky: SkyDome):
@@ -176,7 +212,7 @@ def _bce(o: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     return -(target * torch.log(o) + (1 - target) * torch.log(1 - o)).mean()
 
 
-def evaluate(model: NVSModel, views: list[_View], settings: RasterSettings) -> dict:
+def evaluate(model: VolumeModel, views: list[_View], settings: RasterSettings) -> dict:
     """Mean PSNR / SSIM of the renders of ``views`` against their frames, plus the renders."""
     from core.metrics import psnr, ssim
 
@@ -191,12 +227,121 @@ def evaluate(model: NVSModel, views: list[_View], settings: RasterSettings) -> d
     return {"psnr": float(np.mean(ps)), "ssim": float(np.mean(ss)), "per_frame_psnr": ps, "renders": renders}
 
 
-def train_nvs(bundle: SceneBundle, cfg: NVSConfig, out_dir: str | Path | None = None, *,
-              progress: bool = True, log_every: int = 50, checkpoint_dir: str | Path | None = None,
-              checkpoint_every: int = 500, on_progress: Callable[[int, int, dict], None] | None = None) -> dict:
+def _prior_tensors(priors, views: list[_View]) -> dict[str, dict[str, torch.Tensor]]:
+    """Per training view: the prior layers as tensors plus the pixel mask the terms average over
+    (non-sky per the bundle's mask when it has one, else where the prior sees a surface)."""
+    out = {}
+    for v in views:
+        layers = priors.frame(v.frame_id) if priors is not None else None
+        if layers is None:
+            continue
+        t = {k: torch.from_numpy(np.ascontiguousarray(a, np.float32)) for k, a in layers.items()}
+        surf = t["depth"][..., 0] > 0
+        if v.nonsky is not None:
+            surf = v.nonsky[..., 0] > 0.5
+        t["mask"] = surf.clone()
+        out[v.frame_id] = t
+    return out
+
+
+def prior_losses(out, prior: dict[str, torch.Tensor], min_opacity: float) -> dict[str, torch.Tensor]:
+    """The prior terms of Eq. 4 for one frame: ``normal`` (|N - N_g|_1 - N . N_g), ``albedo``,
+    ``roughness``, ``metallic`` (L1) and ``depth`` (``|(u D + v) - D_g|`` with the closed-form
+    least-squares ``u, v``, detached), each a mean over the covered prior mask. ``out``: the
+    :class:`core.raster.RasterOutput` of the frame; ``prior``: :func:`_prior_tensors` of it.
+    Empty masks give zeros (with the graph kept), never NaN."""
+    o = out.opacity
+    cover = o[..., 0].detach() > min_opacity
+    m = prior["mask"] & cover
+    zero = (o * 0).sum()
+    if int(m.sum()) < 16:
+        return {k: zero for k in ("normal", "albedo", "roughness", "metallic", "depth")}
+    inv = 1.0 / o.clamp_min(min_opacity)  # expected value given a hit (o > min_opacity on m)
+    res = {}
+    n = out.normal * inv
+    ng = prior["normal"].to(n.dtype)
+    res["normal"] = ((n - ng).abs().sum(-1) - (n * ng).sum(-1))[m].mean()
+    for k in ("albedo", "roughness", "metallic"):
+        res[k] = ((getattr(out, k) * inv - prior[k].to(n.dtype)).abs().mean(-1))[m].mean()
+    d = (out.depth * inv)[..., 0]
+    dg = prior["depth"][..., 0].to(d.dtype)
+    md = m & (dg > 0)
+    if int(md.sum()) >= 16:
+        x, y = d.detach()[md], dg[md]
+        xm, ym = x.mean(), y.mean()
+        var = ((x - xm) ** 2).mean()
+        u = ((x - xm) * (y - ym)).mean() / var.clamp_min(1e-8)
+        u = torch.where(var > 1e-8, u, torch.ones_like(u))
+        vshift = ym - u * xm
+        res["depth"] = (u * d[md] + vshift - y).abs().mean()
+    else:
+        res["depth"] = zero
+    return res
+
+
+def lidar_depth_loss(out, px: torch.Tensor, z: torch.Tensor, min_opacity: float = 0.05) -> torch.Tensor:
+    """``mean |D / O - z_lidar|`` at the pixels a sweep hits: the expected depth given a hit
+    (the composited depth ``D`` is a sum weighted by the opacity; compared undivided, a pixel of
+    opacity 0.95 pulls its Gaussians 5% deeper than the LiDAR: below the road)."""
+    o = out.opacity.reshape(-1)[px]
+    d = out.depth.reshape(-1)[px] / o.clamp_min(min_opacity)
+    return (d - z).abs().mean()
+
+
+def alignment_loss(g: Gaussians) -> torch.Tensor:
+    """``mean(1 - |a . n|)`` over Gaussians: ``a`` the unit axis of the smallest scale (world),
+    ``n`` the unit normal. Differentiable in the quaternions and normals (the axis choice is not)."""
+    from core.rotations import quat_to_rotmat
+
+    if g.num == 0:
+        return g.means.sum() * 0
+    rot = quat_to_rotmat(g.quats)  # [N, 3, 3], columns = local axes in world
+    ax = g.log_scales.detach().argmin(1)
+    a = rot.gather(2, ax.view(-1, 1, 1).expand(-1, 3, 1))[..., 0]
+    n = safe_normalize(g.normals)
+    return (1.0 - (a * n).sum(-1).abs()).mean()
+
+
+def sky_floaters(g: Gaussians, views: list[_View], min_fraction: float = 0.5) -> torch.Tensor:
+    """[N] bool: Gaussians (world) whose centre falls on a sky pixel (mask eroded by one pixel)
+    in at least ``min_fraction`` of the training views whose image it projects into."""
+    means = g.means.detach().double()
+    n_in = torch.zeros(g.num, dtype=torch.int32)
+    n_sky = torch.zeros(g.num, dtype=torch.int32)
+    for v in views:
+        if v.nonsky is None:
+            continue
+        sky = v.nonsky[..., 0] < 0.5
+        er = sky.clone()  # erode: a sky pixel next to a surface pixel is not counted
+        er[1:] &= sky[:-1]
+        er[:-1] &= sky[1:]
+        er[:, 1:] &= sky[:, :-1]
+        er[:, :-1] &= sky[:, 1:]
+        w2c = torch.linalg.inv(v.cam_to_world.double())
+        pc = means @ w2c[:3, :3].T + w2c[:3, 3]
+        z = pc[:, 2]
+        ok = z > 0.2
+        u = (v.fx * pc[:, 0] / z.clamp_min(1e-6) + v.cx).floor().long()
+        vv = (v.fy * pc[:, 1] / z.clamp_min(1e-6) + v.cy).floor().long()
+        ok &= (u >= 0) & (u < v.width) & (vv >= 0) & (vv < v.height)
+        idx = torch.nonzero(ok).reshape(-1)
+        n_in[idx] += 1
+        n_sky[idx] += er[vv[idx], u[idx]].to(torch.int32)
+    return (n_sky > 0) & (n_sky.float() >= min_fraction * n_in.float().clamp_min(1))
+
+
+def run_volume(bundle: SceneBundle, cfg: VolumeSettings, out_dir: str | Path | None = None, *,
+               priors=None, init_dir: str | Path | None = None, init_sweeps=None,
+               progress: bool = True, log_every: int = 50, checkpoint_dir: str | Path | None = None,
+               checkpoint_every: int = 500, on_progress: Callable[[int, int, dict], None] | None = None) -> dict:
     """Train on the bundle's train split; evaluate on its test split. Returns a summary dict
-    (held-out PSNR/SSIM, train PSNR, Gaussians, seconds) and writes renders, a checkpoint and
-    ``summary.json`` into ``out_dir`` when given.
+    (held-out PSNR/SSIM, train PSNR, Gaussians, seconds, the loss terms) and writes renders, the
+    scene graph and sky (``checkpoint/``) and ``summary.json`` into ``out_dir`` when given.
+
+    ``priors``: :class:`core.stages.priors.GBufferPriors` of the training frames (None: the prior
+    terms are off, whatever their weights: the colour-only stage). ``init_dir``: with
+    ``cfg.init_from_graph``, the ``checkpoint/`` directory of the previous volume stage (its
+    ``scene_graph.pt`` and ``sky.pt``) to start from.
 
     ``checkpoint_dir``: the full training state (Gaussians, sky, optimiser moments, density
     statistics, random state, loss history) is saved there every ``checkpoint_every`` steps, and a
@@ -221,12 +366,28 @@ def train_nvs(bundle: SceneBundle, cfg: NVSConfig, out_dir: str | Path | None = 
             raise ConfigError("bundle: has no train frames")
         ckpt = Path(checkpoint_dir) if checkpoint_dir is not None else None
         state = _load_state(ckpt) if ckpt is not None else None
+        sky = SkyDome(64, 128, _mean_sky_colour(train))
         if state is not None:
             graph = SceneGraph.load(ckpt / state["graph_file"])
+        elif cfg.init_from_graph:
+            if init_dir is None or not (Path(init_dir) / "scene_graph.pt").is_file():
+                raise ConfigError(f"init_dir: init_from_graph needs the previous stage's checkpoint/ with "
+                                  f"scene_graph.pt, got {init_dir!r}")
+            graph = SceneGraph.load(Path(init_dir) / "scene_graph.pt")
+            sky_file = Path(init_dir) / "sky.pt"
+            if sky_file.is_file():
+                sky.load_state_dict(torch.load(sky_file, map_location="cpu", weights_only=True)["sky"])
         else:
-            bg, nodes = gaussians_from_lidar(bundle, cfg.init)
+            bg, nodes = gaussians_from_lidar(bundle, cfg.init, sweeps=init_sweeps)
             graph = SceneGraph.from_bundle_objects(bundle.manifest, bg, nodes)
-        model = NVSModel(graph, SkyDome(64, 128, _mean_sky_colour(train)))
+        model = VolumeModel(graph, sky)
+        pri = _prior_tensors(priors, train)
+        for v in train:  # no sky mask: the prior's sky (no surface) stands in for it
+            if v.nonsky is None and v.frame_id in pri:
+                v.nonsky = pri[v.frame_id]["mask"].to(torch.float32)[..., None]
+        weights = {"normal": cfg.lambda_normal, "albedo": cfg.lambda_albedo, "roughness": cfg.lambda_roughness,
+                   "metallic": cfg.lambda_metallic, "depth": cfg.lambda_prior_depth}
+        use_priors = bool(pri) and any(w > 0 for w in weights.values())
         settings = RasterSettings(threads=cfg.threads)
         extent = scene_extent(torch.stack([v.cam_to_world[:3, 3] for v in train]))
         opts = [GaussianAdam(g, cfg.lr) for g in model.containers()]
@@ -237,7 +398,7 @@ def train_nvs(bundle: SceneBundle, cfg: NVSConfig, out_dir: str | Path | None = 
         if state is not None:
             start_it = _restore(state, model, opts, dens, sky_opt, rng) + 1
             history = state["history"]
-        bar = tqdm(range(start_it, cfg.iterations + 1), desc="train nvs", unit="it", disable=not progress,
+        bar = tqdm(range(start_it, cfg.iterations + 1), desc="volume", unit="it", disable=not progress,
                    initial=start_it - 1, total=cfg.iterations)
         for it in bar:
             v = train[int(rng.integers(len(train)))]
@@ -251,10 +412,20 @@ def train_nvs(bundle: SceneBundle, cfg: NVSConfig, out_dir: str | Path | None = 
             if v.nonsky is not None and cfg.lambda_opacity > 0:
                 loss = loss + cfg.lambda_opacity * _bce(out.opacity, v.nonsky)
             if v.lidar_px is not None and cfg.lambda_depth > 0 and len(v.lidar_px):
-                d = out.depth.reshape(-1)[v.lidar_px]
-                loss = loss + cfg.lambda_depth * (d - v.lidar_z).abs().mean()
+                loss = loss + cfg.lambda_depth * lidar_depth_loss(out, v.lidar_px, v.lidar_z)
+            terms = {}
+            if cfg.lambda_align > 0:
+                terms["align"] = alignment_loss(world)
+                loss = loss + cfg.lambda_align * terms["align"]
+            if use_priors and v.frame_id in pri:
+                terms = prior_losses(out, pri[v.frame_id], cfg.prior_min_opacity)
+                for k, w in weights.items():
+                    if w > 0:
+                        loss = loss + w * terms[k]
             if not torch.isfinite(loss):
-                raise ConfigError(f"training diverged at iteration {it} (loss {float(loss)})")
+                bad = [k for k, t in terms.items() if not torch.isfinite(t)] or ["rgb/opacity/lidar"]
+                raise NumericalError(f"volume stage: non-finite loss at iteration {it} (term(s) {bad}; "
+                                     f"last good checkpoint kept)")
             loss.backward()
             decay = cfg.means_lr_decay ** (it / cfg.iterations)
             for o in opts:
@@ -279,13 +450,21 @@ def train_nvs(bundle: SceneBundle, cfg: NVSConfig, out_dir: str | Path | None = 
             if it % log_every == 0 or it == cfg.iterations:
                 n = sum(g.num for g in model.containers())
                 history.append({"it": it, "loss": float(loss.detach()), "l1": float(l1.detach()), "gaussians": n,
-                                "s": round(time.time() - t0, 2)})
+                                "s": round(time.time() - t0, 2),
+                                **{f"prior_{k}": round(float(t.detach()), 5) for k, t in terms.items()}})
                 bar.set_postfix(loss=f"{float(loss.detach()):.4f}", n=n)
                 if on_progress is not None:
                     on_progress(it, cfg.iterations, history[-1])
             if ckpt is not None and (it % checkpoint_every == 0 or it == cfg.iterations):
                 _save_state(ckpt, it, model, opts, dens, sky_opt, rng, history)
         train_s = time.time() - t0
+        pruned = 0
+        if cfg.prune_sky_floaters:
+            bg = model.graph.background.detach()
+            drop = sky_floaters(bg, train)
+            pruned = int(drop.sum())
+            if pruned:
+                model.set_container(0, bg.index(~drop))
         ev_test = evaluate(model, test, settings) if test else {"psnr": float("nan"), "ssim": float("nan"), "renders": []}
         ev_train = evaluate(model, train[:: max(1, len(train) // 5)], settings)
         summary = {
@@ -295,6 +474,7 @@ def train_nvs(bundle: SceneBundle, cfg: NVSConfig, out_dir: str | Path | None = 
             "test_psnr": round(ev_test["psnr"], 3), "test_ssim": round(ev_test["ssim"], 4),
             "train_psnr": round(ev_train["psnr"], 3), "train_ssim": round(ev_train["ssim"], 4),
             "threads": cfg.threads, "resumed_from_iteration": start_it - 1, "history": history,
+            "priors": (priors.source if use_priors else None), "sky_floaters_pruned": pruned,
         }
         if out_dir is not None:
             from core.io.images import write_png
@@ -319,7 +499,7 @@ def train_nvs(bundle: SceneBundle, cfg: NVSConfig, out_dir: str | Path | None = 
 STATE_FILE = "train_state.pt"
 
 
-def _save_state(ckpt: Path, it: int, model: NVSModel, opts, dens, sky_opt, rng, history) -> None:
+def _save_state(ckpt: Path, it: int, model: VolumeModel, opts, dens, sky_opt, rng, history) -> None:
     """Write the training state: the scene graph of this iteration first, then the state file
     (atomically, last) naming that graph; older graphs are removed afterwards. A crash at any
     point leaves a state file that names a complete graph."""
@@ -357,7 +537,7 @@ def _load_state(ckpt: Path) -> dict | None:
     return state
 
 
-def _restore(state: dict, model: NVSModel, opts, dens, sky_opt, rng) -> int:
+def _restore(state: dict, model: VolumeModel, opts, dens, sky_opt, rng) -> int:
     model.sky.load_state_dict(state["sky"])
     sky_opt.load_state_dict(state["sky_opt"])
     for o, st in zip(opts, state["opt"]):
@@ -369,5 +549,62 @@ def _restore(state: dict, model: NVSModel, opts, dens, sky_opt, rng) -> int:
     return int(state["iteration"])
 
 
-def _cfg_dict(cfg: NVSConfig) -> dict:
+def _cfg_dict(cfg: VolumeSettings) -> dict:
     return json.loads(json.dumps(asdict(cfg)))
+
+
+def _skips(bundle, priors, priors_in_loss: bool) -> tuple[list[str], bool]:
+    """What this scene does not have and what the stage does instead (for the summary), and
+    whether the initialisation must come from the depth prior (no LiDAR)."""
+    m = bundle.manifest
+    out = []
+    no_lidar = not m.lidar
+    if no_lidar:
+        out.append("LiDAR depth term and LiDAR initialisation: the bundle has no LiDAR; Gaussians start from the "
+                   "inverse model's depth prior" if priors is not None else
+                   "LiDAR: the bundle has no LiDAR and no depth prior is available")
+    if not any(f.sky_mask for f in m.frames):
+        out.append("sky masks: the bundle has none; the opacity term uses the prior's sky (no surface) instead"
+                   if priors_in_loss else "opacity term: the bundle has no sky masks")
+    if not m.objects:
+        out.append("object nodes: the bundle has no tracked objects (background only)")
+    return out, no_lidar
+
+
+def run_stage(ctx) -> dict:
+    """The chain's entry point (:func:`core.stages.chain.run_stage`) for ``volume`` and
+    ``volume2``: priors from the run (the inverse model's, or the latest refined ones), the
+    previous graph for ``init_from_graph``, the checkpoint under ``<stage>/resume/``."""
+    import shutil
+
+    from core.train.init_lidar import sweeps_from_depth
+
+    cfg: VolumeSettings = ctx.settings
+    b = ctx.bundle
+    wants_priors = any(w > 0 for w in (cfg.lambda_normal, cfg.lambda_albedo, cfg.lambda_roughness,
+                                       cfg.lambda_metallic, cfg.lambda_prior_depth))
+    priors, source = (None, None)
+    if wants_priors or not b.manifest.lidar:
+        priors, source = ctx.run.latest_priors(b, ctx.name, threads=cfg.threads)
+    skipped, no_lidar = _skips(b, priors, wants_priors and priors is not None)
+    init_dir = None
+    if cfg.init_from_graph:
+        found = ctx.run.latest_graph_dir(before=ctx.name)
+        if found is None:
+            raise ConfigError(f"stage {ctx.name!r}: init_from_graph needs a finished volume stage in {ctx.run.root}")
+        init_dir = found[0]
+    sweeps = None
+    if no_lidar and not cfg.init_from_graph:
+        if priors is None:
+            raise ConfigError("bundle: has no LiDAR and no depth prior to initialise the Gaussians from")
+        sweeps = sweeps_from_depth(b, {fid: d["depth"] for fid, d in priors.layers.items()})
+    total = cfg.iterations
+    summary = run_volume(b, cfg, ctx.out_dir, priors=priors if wants_priors else None, init_dir=init_dir,
+                         init_sweeps=sweeps, progress=ctx.progress, log_every=max(1, total // 100),
+                         checkpoint_dir=ctx.resume_dir, checkpoint_every=max(1, total // 10),
+                         on_progress=ctx.on_progress)
+    shutil.rmtree(ctx.resume_dir, ignore_errors=True)  # done: the resume state is not needed
+    summary["prior_source"] = source if wants_priors else None
+    summary["skipped"] = skipped
+    summary["seconds"] = summary.get("total_seconds")
+    return summary

@@ -1,4 +1,4 @@
-"""The physically based inverse-rendering stage (the paper's Eq. 6): lighting only.
+"""The physically based inverse-rendering stage (paper Sec. 3.3, Eq. 6): lighting only.
 
 Geometry and material are frozen (the volume stage's scene graph). The environment map ``E`` is a
 log-radiance parameter (:class:`core.pbr.envmap.EnvironmentMap` with ``log_space=True``),
@@ -13,13 +13,12 @@ with ``lambda_E`` decayed linearly from 1.0 to 0.1 over the stage (the supplemen
 (observed sky pixels placed by the poses, a parametric sky, the sun from saturated pixels and
 shading), computed on the reconstruction's own G-buffers (depth, normals, albedo rasterized from
 the scene graph), never on ground truth. The paper uses DiffusionLight for ``E_g``; this project's
-learned lighting prior does not exist yet (issue 5).
+learned lighting prior does not exist yet.
 
 Outputs (``out_dir``): ``envmap.exr`` (the fitted ``E``, float32, 2:1 equirect in the project's
-convention), ``envmap_prior.exr`` (``E_g``), ``preview.png`` (both tone-mapped, and the
-ground-truth map when the bundle has one), ``summary.json`` (losses, photometric PSNR on the
-sampled pixels before and after, and, for synthetic bundles, sun direction and log-space errors
-against the ground-truth map).
+convention), ``envmap_prior.exr`` (``E_g``), ``preview.png`` (both tone-mapped), ``summary.json``
+(losses, photometric PSNR on the sampled pixels before and after). The stage never reads the
+bundle's ground truth; ``brdf evaluate`` (:mod:`core.evaluate`) measures the sun direction error.
 """
 
 from __future__ import annotations
@@ -77,14 +76,6 @@ class PBRStageConfig:
                                ("eval_pixels", self.eval_pixels >= 1), ("threads", self.threads >= 1)) if not ok]
         if bad:
             raise ConfigError(f"PBRStageConfig: out of range: {', '.join(bad)} ({self})")
-
-
-PBR_STAGE_PROFILES = {
-    "tiny": PBRStageConfig(iterations=30, pixels=512, rays_per_pixel=8, env_height=32, max_frames=4,
-                           eval_pixels=512),
-    "quick": PBRStageConfig(),
-    "benchmark": PBRStageConfig(iterations=400),
-}
 
 
 @dataclass
@@ -273,21 +264,6 @@ def fit_lighting(graph, bundle, out_dir: str | Path, cfg: PBRStageConfig | None 
                "photometric_psnr_prior": psnr_before, "photometric_psnr_fitted": psnr_after,
                "sun_source": est.sun_source, "sun_dir_prior": [float(x) for x in est.sun_dir],
                "history": history, "seconds": {"gbuffers": t_frames, "total": time.perf_counter() - t0}}
-    gt = m.ground_truth
-    if gt is not None:
-        from core.gen.lighting import brightest_direction, envmap_log_error, sun_direction_error_deg
-        from core.io.envmap_file import read_envmap
-
-        gt_map = read_envmap(bundle.path(gt.envmap))
-        gt_full = resample(torch.from_numpy(np.asarray(gt_map, np.float64)), 512, 1024).numpy()
-        sun_gt = brightest_direction(gt_full)
-        summary["ground_truth"] = {
-            "envmap_name": gt.envmap_name,
-            "sun_dir_err_deg_prior": sun_direction_error_deg(est.sun_dir, sun_gt),
-            "sun_dir_err_deg_fitted": sun_direction_error_deg(brightest_direction(fitted_full), sun_gt),
-            "log_err_prior": envmap_log_error(prior_full, gt_full)["log_l1"],
-            "log_err_fitted": envmap_log_error(fitted_full, gt_full)["log_l1"]}
-        rows.append(_ldr_map(gt_full.astype(np.float32)))
     sep = np.full((4, 1024, 3), 255, np.uint8)
     strip = np.concatenate([x for r in rows for x in (r, sep)][:-1])
     write_png(out / "preview.png", strip[::2, ::2])
@@ -295,4 +271,36 @@ def fit_lighting(graph, bundle, out_dir: str | Path, cfg: PBRStageConfig | None 
     return summary
 
 
-__all__ = ["PBRStageConfig", "PBR_STAGE_PROFILES", "fit_lighting"]
+
+
+def run_stage(ctx) -> dict:
+    """The chain's entry point: the latest scene graph before this stage, frozen; the lighting
+    fitted into ``<run>/pbr/``."""
+    cfg: PBRStageConfig = ctx.settings
+    graph, _sky, graph_stage = ctx.run.load_scene(before=ctx.name)
+    total = cfg.iterations
+    bar = None
+    if ctx.progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=total, desc="pbr", unit="it")
+
+    def report(it, n, rec):
+        if bar is not None:
+            bar.update(1)
+            bar.set_postfix(loss=f"{rec['loss']:.4f}")
+        if ctx.on_progress is not None:
+            ctx.on_progress(it, n, rec)
+
+    try:
+        summary = fit_lighting(graph, ctx.bundle, ctx.out_dir, cfg, on_progress=report)
+    finally:
+        if bar is not None:
+            bar.close()
+    summary["graph_stage"] = graph_stage
+    summary["timings"] = summary.pop("seconds")
+    summary["seconds"] = round(summary["timings"]["total"], 2)
+    return summary
+
+
+__all__ = ["PBRStageConfig", "fit_lighting", "run_stage"]

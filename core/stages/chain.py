@@ -1,0 +1,410 @@
+"""The inverse-rendering pipeline, described once: stage order, what each stage reads and writes,
+the settings of every stage per profile, and the run directory they share.
+
+The paper's chain (Sec. 3.3; supplement "Implementation Details"):
+
+==================  =====================================  ======================================
+stage               reads                                  writes (under ``<run>/<stage>/``)
+==================  =====================================  ======================================
+volume              frames, sky masks, LiDAR, priors       checkpoint/scene_graph.pt, sky.pt,
+                    (inverse model, cached in priors/)     renders/, summary.json
+generative_refine   volume's scene graph, frames           priors.npz (refined G-buffers),
+                                                           preview.png, summary.json
+volume2             volume's scene graph + sky,            checkpoint/scene_graph.pt, sky.pt,
+                    generative_refine's priors             renders/, summary.json
+pbr                 the latest scene graph, frames         envmap.exr, envmap_prior.exr,
+                                                           preview.png, summary.json
+joint               the latest scene graph + sky, pbr's    checkpoint/scene_graph.pt, sky.pt,
+                    envmap, the latest priors              envmap.exr, summary.json
+==================  =====================================  ======================================
+
+The CLI runs :func:`run_pipeline` in-process; the service's workers run each stage as its own RQ
+job through :func:`run_stage` with the same :class:`RunDir` layout, so neither holds stage logic.
+
+Each stage: frozen settings (the profile table :data:`PROFILES`), a checkpoint that resumes a
+killed run (``<stage>/resume/``), a loss log and timings in ``<stage>/summary.json``, and a
+``<stage>/done.json`` written last, when the stage's outputs are complete.
+
+A stage skips what the scene does not have (no LiDAR: no depth term; no sky masks: no opacity
+term; no objects: no nodes) and records that in its summary under ``skipped``.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass, field, fields, is_dataclass, replace
+from pathlib import Path
+from typing import Any, Callable
+
+from core.errors import ConfigError, FormatError
+
+#: The paper's stages in chain order.
+STAGES = ("volume", "generative_refine", "volume2", "pbr", "joint")
+#: Profiles: ``tiny`` (tests, CI), ``quick`` (the default scene, the demo: whole pipeline in
+#: <= 15 min on 2 CPU cores), ``benchmark`` (the figures; a few hours), ``paper`` (the paper's
+#: iteration counts, rays and resolution, for a GPU host).
+PROFILE_NAMES = ("tiny", "quick", "benchmark", "paper")
+RUN_FILE = "run.json"
+DONE_FILE = "done.json"
+#: Stages that write a scene graph (``checkpoint/scene_graph.pt``), latest last.
+GRAPH_STAGES = ("volume", "volume2", "joint")
+#: Stages that write an environment map (``envmap.exr``), latest last.
+ENVMAP_STAGES = ("pbr", "joint")
+#: Stages that write G-buffer priors, latest last (``priors/`` holds the inverse model's).
+PRIOR_STAGES = ("generative_refine",)
+
+
+@dataclass(frozen=True)
+class StageSpec:
+    """One stage of the chain."""
+
+    name: str
+    """Stage name (``STAGES``)."""
+    paper: str
+    """Where the paper describes it."""
+    reads: tuple[str, ...]
+    """Stages whose outputs it needs (must be done first)."""
+    writes: tuple[str, ...]
+    """Files it writes under ``<run>/<stage>/``."""
+    settings_type: type
+    """Its frozen settings dataclass."""
+    module: str
+    """The core module that runs it (``run_stage(ctx) -> summary``)."""
+
+
+@dataclass
+class StageContext:
+    """What a stage function gets."""
+
+    name: str
+    bundle: Any
+    """:class:`core.bundle.SceneBundle` (frames, masks, LiDAR; never its ground truth)."""
+    run: "RunDir"
+    settings: Any
+    """The stage's frozen settings."""
+    progress: bool = True
+    """Show a progress bar."""
+    on_progress: Callable[[int, int, dict], None] | None = None
+    """``(step, total, record)`` callback (may raise to stop the stage: a cancel)."""
+
+    @property
+    def out_dir(self) -> Path:
+        return self.run.stage_dir(self.name)
+
+    @property
+    def resume_dir(self) -> Path:
+        return self.run.stage_dir(self.name) / "resume"
+
+
+def _specs() -> dict[str, StageSpec]:
+    from core.stages.generative_refine import RefineSettings
+    from core.stages.joint import JointSettings
+    from core.stages.pbr import PBRStageConfig
+    from core.stages.volume import VolumeSettings
+
+    return {s.name: s for s in (
+        StageSpec("volume", "Sec. 3.3 'Volume Rendering Stage', Eq. 4", (), ("checkpoint/scene_graph.pt",
+                  "checkpoint/sky.pt", "renders/", "summary.json"), VolumeSettings, "core.stages.volume"),
+        StageSpec("generative_refine", "Sec. 3.3 'Generative Refinement Stage'", ("volume",),
+                  ("priors.npz", "preview.png", "summary.json"), RefineSettings, "core.stages.generative_refine"),
+        StageSpec("volume2", "Sec. 3.3 (stages (a)(b) alternate), Eq. 4 with refined priors",
+                  ("volume", "generative_refine"), ("checkpoint/scene_graph.pt", "checkpoint/sky.pt", "renders/",
+                                                    "summary.json"), VolumeSettings, "core.stages.volume2"),
+        StageSpec("pbr", "Sec. 3.3 'Physically-based Inverse Rendering Stage', Eq. 6", ("volume",),
+                  ("envmap.exr", "envmap_prior.exr", "preview.png", "summary.json"), PBRStageConfig,
+                  "core.stages.pbr"),
+        StageSpec("joint", "Sec. 3.3 (d) and supplement: L_vol + 0.1 L_pbr", ("volume", "pbr"),
+                  ("checkpoint/scene_graph.pt", "checkpoint/sky.pt", "envmap.exr", "summary.json"), JointSettings,
+                  "core.stages.joint"),
+    )}
+
+
+def stage_spec(name: str) -> StageSpec:
+    """The :class:`StageSpec` of ``name``; ConfigError naming the known stages."""
+    specs = _specs()
+    if name not in specs:
+        raise ConfigError(f"stage: unknown stage {name!r} (stages: {list(STAGES)})")
+    return specs[name]
+
+
+def _profile_table() -> dict[str, dict[str, Any]]:
+    from core.stages.generative_refine import RefineSettings
+    from core.stages.joint import JointSettings
+    from core.stages.pbr import PBRStageConfig
+    from core.stages.volume import VolumeSettings
+    from core.train.density import DensityConfig
+    from core.train.init_lidar import LidarInitConfig
+
+    tiny_init = LidarInitConfig(max_background_points=3000, max_object_points=300)
+    return {
+        "tiny": {
+            "volume": VolumeSettings(iterations=60, densify_from=20, densify_until=50, densify_every=15, init=tiny_init),
+            "generative_refine": RefineSettings(),
+            "volume2": VolumeSettings(iterations=30, densify_from=10**9, densify_until=0, init_from_graph=True),
+            "pbr": PBRStageConfig(iterations=30, pixels=512, rays_per_pixel=8, env_height=32, max_frames=4,
+                                  eval_pixels=512),
+            "joint": JointSettings(iterations=20, pixels=256, rays_per_pixel=8, max_frames=4),
+        },
+        "quick": {
+            "volume": VolumeSettings(density=DensityConfig(max_gaussians=80_000)),
+            "generative_refine": RefineSettings(),
+            "volume2": VolumeSettings(iterations=800, densify_from=10**9, densify_until=0, init_from_graph=True,
+                                      density=DensityConfig(max_gaussians=80_000)),
+            "pbr": PBRStageConfig(),
+            "joint": JointSettings(),
+        },
+        "benchmark": {
+            "volume": VolumeSettings(iterations=7000, densify_until=4000, opacity_reset_every=3000),
+            "generative_refine": RefineSettings(),
+            "volume2": VolumeSettings(iterations=3000, densify_from=10**9, densify_until=0, init_from_graph=True),
+            "pbr": PBRStageConfig(iterations=400),
+            "joint": JointSettings(iterations=600),
+        },
+        # The paper's counts (supplement): 30k + 30k volume iterations, 5k PBR, 20k joint,
+        # 512 rays and 2048 pixels per step. For a GPU host; hours per stage on these CPUs.
+        "paper": {
+            "volume": VolumeSettings(iterations=30_000, densify_until=15_000, opacity_reset_every=3000,
+                                     density=DensityConfig(max_gaussians=2_000_000)),
+            "generative_refine": RefineSettings(),
+            "volume2": VolumeSettings(iterations=30_000, densify_from=10**9, densify_until=0, init_from_graph=True,
+                                      density=DensityConfig(max_gaussians=2_000_000)),
+            "pbr": PBRStageConfig(iterations=5000, rays_per_pixel=512, max_frames=200),
+            "joint": JointSettings(iterations=20_000, rays_per_pixel=512, max_frames=200),
+        },
+    }
+
+
+def profile_settings(profile: str, stage: str, overrides: dict | None = None):
+    """The frozen settings of ``stage`` in ``profile``, with field ``overrides``
+    (ConfigError naming an unknown profile, stage or field)."""
+    if profile not in PROFILE_NAMES:
+        raise ConfigError(f"profile: unknown profile {profile!r} (profiles: {list(PROFILE_NAMES)})")
+    stage_spec(stage)
+    cfg = _profile_table()[profile][stage]
+    if overrides:
+        names = {f.name for f in fields(cfg)}
+        bad = sorted(set(overrides) - names)
+        if bad:
+            raise ConfigError(f"{stage} settings: unknown field(s) {bad} (fields: {sorted(names)})")
+        cfg = replace(cfg, **overrides)
+    return cfg
+
+
+def scale_iterations(cfg, scale: float):
+    """``cfg`` with its iteration counts (and the volume stage's density schedule) scaled."""
+    if scale == 1.0:
+        return cfg
+    if not scale > 0:
+        raise ConfigError(f"iterations_scale: must be > 0, got {scale!r}")
+    upd = {"iterations": max(1, round(cfg.iterations * scale))}
+    for k in ("densify_from", "densify_until", "densify_every"):
+        if hasattr(cfg, k) and getattr(cfg, k) < 10**8:
+            upd[k] = max(1 if k == "densify_every" else 0, round(getattr(cfg, k) * scale))
+    return replace(cfg, **upd)
+
+
+def _jsonable(x):
+    if is_dataclass(x):
+        return {f.name: _jsonable(getattr(x, f.name)) for f in fields(x)}
+    if isinstance(x, (list, tuple)):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, float) and x != x:
+        return None
+    return x
+
+
+def write_json(path: Path, obj) -> None:
+    """JSON written to a temporary name and renamed (NaN -> null: the file is always valid JSON)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(_jsonable(obj), indent=1, allow_nan=False))
+    tmp.replace(path)
+
+
+@dataclass
+class RunDir:
+    """A reconstruction run: ``run.json`` (scene, profile, stages) and one directory per stage."""
+
+    root: Path
+    _meta: dict = field(default_factory=dict, repr=False)
+
+    def __post_init__(self) -> None:
+        self.root = Path(self.root)
+
+    @classmethod
+    def create(cls, root: str | Path, scene: str | Path, profile: str) -> "RunDir":
+        r = cls(Path(root))
+        r.root.mkdir(parents=True, exist_ok=True)
+        write_json(r.root / RUN_FILE, {"format": "brdfusion-run", "version": 1, "scene": str(Path(scene).resolve()),
+                                       "profile": profile, "created": time.strftime("%Y-%m-%dT%H:%M:%S")})
+        return r
+
+    @property
+    def meta(self) -> dict:
+        if not self._meta:
+            f = self.root / RUN_FILE
+            if not f.is_file():
+                raise ConfigError(f"{self.root}: not a reconstruction run (no {RUN_FILE}); make one with "
+                                  f"'brdf reconstruct --scene S --out {self.root}'")
+            try:
+                self._meta = json.loads(f.read_text())
+            except ValueError as exc:
+                raise FormatError(f"{f}: not valid JSON ({exc})") from exc
+        return self._meta
+
+    def scene_path(self) -> Path:
+        return Path(self.meta["scene"])
+
+    @property
+    def profile(self) -> str:
+        return str(self.meta.get("profile", "quick"))
+
+    def stage_dir(self, name: str) -> Path:
+        return self.root / name
+
+    def is_done(self, name: str) -> bool:
+        return (self.stage_dir(name) / DONE_FILE).is_file()
+
+    def done_stages(self) -> list[str]:
+        return [s for s in STAGES if self.is_done(s)]
+
+    def mark_done(self, name: str, summary: dict) -> None:
+        write_json(self.stage_dir(name) / "summary.json", summary)
+        write_json(self.stage_dir(name) / DONE_FILE, {"stage": name, "finished": time.strftime("%Y-%m-%dT%H:%M:%S"),
+                                                      "seconds": summary.get("seconds")})
+
+    def summary(self, name: str) -> dict | None:
+        f = self.stage_dir(name) / "summary.json"
+        return json.loads(f.read_text()) if f.is_file() else None
+
+    # -- the latest outputs ------------------------------------------------------------------
+    def latest_graph_dir(self, before: str | None = None) -> tuple[Path, str] | None:
+        """``(checkpoint dir, stage)`` of the latest done stage with a scene graph (only stages
+        before ``before`` in chain order when given)."""
+        limit = STAGES.index(before) if before is not None else len(STAGES)
+        for st in reversed(GRAPH_STAGES):
+            if STAGES.index(st) < limit and self.is_done(st):
+                return self.stage_dir(st) / "checkpoint", st
+        return None
+
+    def load_scene(self, before: str | None = None):
+        """(SceneGraph, SkyDome, stage) of the latest reconstructed scene."""
+        import torch
+
+        from core.scene_graph import SceneGraph
+        from core.train.sky import SkyDome
+
+        found = self.latest_graph_dir(before)
+        if found is None:
+            raise ConfigError(f"{self.root}: no finished stage with a scene graph (run the volume stage first)")
+        d, st = found
+        graph = SceneGraph.load(d / "scene_graph.pt")
+        sky = SkyDome(64, 128)
+        f = d / "sky.pt"
+        if f.is_file():
+            sky.load_state_dict(torch.load(f, map_location="cpu", weights_only=True)["sky"])
+        return graph, sky, st
+
+    def latest_envmap(self, before: str | None = None) -> tuple[Path | None, str | None]:
+        limit = STAGES.index(before) if before is not None else len(STAGES)
+        for st in reversed(ENVMAP_STAGES):
+            if STAGES.index(st) < limit and self.is_done(st) and (self.stage_dir(st) / "envmap.exr").is_file():
+                return self.stage_dir(st) / "envmap.exr", st
+        return None, None
+
+    def latest_priors(self, bundle, before: str, threads: int = 2):
+        """(GBufferPriors, source) for a stage: the latest refined priors before it, else the
+        inverse model's (computed once and cached in ``priors/``)."""
+        from core.stages.priors import GBufferPriors, load_or_compute_priors
+
+        limit = STAGES.index(before)
+        for st in reversed(PRIOR_STAGES):
+            if STAGES.index(st) < limit and self.is_done(st):
+                return GBufferPriors.load(self.stage_dir(st) / "priors.npz")[0], st
+        pri, _ = load_or_compute_priors(bundle, self.root / "priors" / "priors.npz", threads=threads)
+        return pri, "inverse_model"
+
+
+def run_stage(name: str, bundle, run: RunDir, settings=None, *, progress: bool = True,
+              on_progress: Callable[[int, int, dict], None] | None = None) -> dict:
+    """Run one stage on ``run`` (its inputs must be done) and mark it done. Returns its summary.
+    A stage killed part-way resumes from ``<stage>/resume/`` when run again."""
+    import importlib
+
+    spec = stage_spec(name)
+    missing = [r for r in spec.reads if not run.is_done(r)]
+    if missing:
+        raise ConfigError(f"stage {name!r}: needs the stage(s) {missing} to be done first in {run.root}")
+    cfg = settings if settings is not None else profile_settings(run.profile, name)
+    if not isinstance(cfg, spec.settings_type):
+        raise ConfigError(f"settings: stage {name!r} takes {spec.settings_type.__name__}, got {type(cfg).__name__}")
+    mod = importlib.import_module(spec.module)
+    ctx = StageContext(name, bundle, run, cfg, progress, on_progress)
+    ctx.out_dir.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    summary = mod.run_stage(ctx)
+    summary = {"stage": name, "paper": spec.paper, "settings": _jsonable(cfg), **summary}
+    summary.setdefault("seconds", round(time.perf_counter() - t0, 2))
+    run.mark_done(name, summary)
+    return summary
+
+
+def resolve_stages(stages) -> tuple[str, ...]:
+    """Requested stages in chain order, each once (None = all); ConfigError naming unknown ones."""
+    if stages is None:
+        return STAGES
+    stages = [s.strip() for s in (stages.split(",") if isinstance(stages, str) else stages) if s.strip()]
+    bad = [s for s in stages if s not in STAGES]
+    if bad or not stages:
+        raise ConfigError(f"stages: unknown stage(s) {bad} (stages: {list(STAGES)})" if bad
+                          else "stages: at least one stage is needed")
+    return tuple(s for s in STAGES if s in stages)
+
+
+def run_pipeline(scene: str | Path, run_dir: str | Path, profile: str = "quick", *, stages=None,
+                 resume: bool = False, progress: bool = True, overrides: dict[str, dict] | None = None,
+                 iterations_scale: float = 1.0,
+                 on_stage: Callable[[str, str, dict | None], None] | None = None) -> dict:
+    """Run the chain (or ``stages`` of it) on the bundle at ``scene`` into ``run_dir``.
+
+    ``resume``: continue an existing run (done stages are kept, a killed stage resumes from its
+    checkpoint). Without it, an existing run directory is an error (nothing stored is lost).
+    ``overrides``: ``{stage: {field: value}}``. ``on_stage(stage, "start"|"done"|"skip",
+    summary)``. Returns ``{stage: summary}`` of the stages run or kept."""
+    from core.bundle import open_bundle
+
+    if profile not in PROFILE_NAMES:
+        raise ConfigError(f"profile: unknown profile {profile!r} (profiles: {list(PROFILE_NAMES)})")
+    wanted = resolve_stages(stages)
+    root = Path(run_dir)
+    if (root / RUN_FILE).is_file():
+        if not resume:
+            raise ConfigError(f"{root}: a run already exists there (stages done: {RunDir(root).done_stages()}); "
+                              f"pass --resume to continue it or choose another --out")
+        run = RunDir(root)
+        if run.profile != profile:
+            raise ConfigError(f"profile: the run in {root} was made with profile {run.profile!r}, not {profile!r}")
+    else:
+        run = RunDir.create(root, scene, profile)
+    bundle = open_bundle(scene)
+    out: dict = {}
+    for name in wanted:
+        if run.is_done(name) and resume:
+            out[name] = run.summary(name)
+            if on_stage:
+                on_stage(name, "skip", out[name])
+            continue
+        cfg = scale_iterations(profile_settings(profile, name, (overrides or {}).get(name)), iterations_scale)
+        if on_stage:
+            on_stage(name, "start", None)
+        out[name] = run_stage(name, bundle, run, cfg, progress=progress)
+        if on_stage:
+            on_stage(name, "done", out[name])
+    return out
+
+
+__all__ = ["STAGES", "PROFILE_NAMES", "StageSpec", "StageContext", "RunDir", "stage_spec", "profile_settings",
+           "run_stage", "run_pipeline", "resolve_stages", "scale_iterations", "write_json"]
