@@ -232,21 +232,19 @@ def cmd_relight(a: argparse.Namespace) -> int:
 
 
 def cmd_night(a: argparse.Namespace) -> int:
-    from core.io.envmap_file import read_envmap
-    from core.render.scenario import Scenario
+    from core.render.scenario import night_scenario
     from core.stages.chain import RunDir
 
     run = RunDir(a.run)
-    env_path, _ = run.latest_envmap()
-    if env_path is None:
-        raise CoreError(f"{a.run}: the reconstruction has no recovered sky (run the pbr stage: "
-                        f"brdf reconstruct --resume --stages pbr); night scales the scene's own sky")
     b = _open_any(str(run.scene_path()))
     views, fps, lights, edits = _scenario_common(a, b)
     m = b.manifest
-    sc = Scenario(tuple(views), read_envmap(env_path), sky_scale=a.sky_scale, lights=tuple(lights), edits=tuple(edits),
-                  headlights=not a.no_headlights, headlight_intensity=a.headlight_intensity, exposure_ev=a.exposure,
-                  base_exposure=m.ldr_exposure, gamma=m.ldr_gamma, rays_per_pixel=a.rays, denoiser=a.denoiser, fps=fps)
+    sc, note = night_scenario(run, sky_scale=a.sky_scale, headlights=not a.no_headlights,
+                              headlight_intensity=a.headlight_intensity, exposure_ev=a.exposure, views=tuple(views),
+                              lights=tuple(lights), edits=tuple(edits), base_exposure=m.ldr_exposure,
+                              gamma=m.ldr_gamma, rays_per_pixel=a.rays, denoiser=a.denoiser, fps=fps)
+    if not a.quiet:
+        print(f"night sky: {note}")
     return _render_and_report(run, a, sc, "night")
 
 
@@ -258,6 +256,27 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
     res = evaluate_run(a.run, b, s, out=a.out, on_step=None if a.quiet else (lambda m: print(f"  {m} done", flush=True)))
     print(json.dumps(res["summary"], indent=1))
     print(f"  written: {Path(a.out or a.run) / 'evaluation.json'}")
+    return 0
+
+
+def cmd_demo(a: argparse.Namespace) -> int:
+    from core.demo import DemoSettings, run_demo
+
+    b = _open_any(a.scene)
+    out = Path(a.out) if a.out else REPO_ROOT / "outputs" / b.name
+    res = run_demo(b.root, out, DemoSettings(profile=a.profile, envmap=a.envmap, rays_per_pixel=a.rays,
+                                              denoiser=a.denoiser), progress=not a.quiet)
+    sec = res["seconds"]
+    print(f"main job on {b.name!r} ({a.profile}): {sec['total']:.0f} s "
+          f"(reconstruct {sec['reconstruct']:.0f} s, relight {sec['relight']:.0f} s, night {sec['night']:.0f} s)")
+    for k, v in res["outputs"].items():
+        print(f"  {k}: {v}")
+    if res["metrics"]:
+        mt = res["metrics"]
+        print("  measured against the bundle's Mitsuba ground truth (test trajectory):")
+        for k, v in mt.items():
+            if v is not None:
+                print(f"    {k:28s} {v}")
     return 0
 
 
@@ -384,6 +403,16 @@ def build_parser(extensions=()) -> argparse.ArgumentParser:
     ev.add_argument("--max-frames", type=int, default=0, help="test frames evaluated (0 = all)")
     ev.add_argument("--quiet", action="store_true")
     ev.set_defaults(fn=cmd_evaluate)
+
+    dm = sub.add_parser("demo", help="the main job: reconstruct, relight, night clip, evaluate, side-by-side sheet")
+    dm.add_argument("--scene", default=str(DEFAULT_SCENE), help="bundle dir or archive (default: bundled scene)")
+    dm.add_argument("--profile", default="quick", help="reconstruction profile (default quick)")
+    dm.add_argument("--envmap", default=None, help="relighting map (default: the bundle's first held-back map)")
+    dm.add_argument("--rays", type=int, default=64, help="PBR rays per pixel")
+    dm.add_argument("--denoiser", default="oidn", choices=["none", "oidn", "diffusion"])
+    dm.add_argument("--out", default=None, help="output directory (default outputs/<scene>)")
+    dm.add_argument("--quiet", action="store_true")
+    dm.set_defaults(fn=cmd_demo)
 
     n = sub.add_parser("info", help="summarise a scene bundle")
     n.add_argument("path")

@@ -29,10 +29,10 @@ from pathlib import Path
 
 from sqlalchemy import delete, func, select, update
 
-from api_schemas import OutputKind, ReconstructRequest, RenderRequest
+from api_schemas import OutputKind, RenderRequest
 from worker.db import Artifact, Database, Job, JobStage, Scene, get_database, pending_stage_names, utcnow
 from worker.registry import JobType, register
-from worker.settings import QUEUE_RENDER, QUEUE_TRAIN, Settings, get_settings
+from worker.settings import QUEUE_RENDER, Settings, get_settings
 from worker.storage import ArtifactStore, get_store
 
 log = logging.getLogger("brdf.jobs")
@@ -268,9 +268,9 @@ def run_job(job_id: str, attempt: int, stage: str | None = None) -> dict:
     if job is None:
         return {"job": job_id, "attempt": attempt, "stage": stage,
                 "skipped": "not queued for this attempt and stage (stale or canceled)"}
-    from worker.registry import REGISTRY
+    from worker.registry import job_type
 
-    jt = REGISTRY.get(job.type)
+    jt = job_type(job.type)
     chain = None
     if stage is not None:
         with db.session() as s:
@@ -426,133 +426,3 @@ def run_render(ctx: JobContext, p: RenderRequest) -> None:
 
 
 register(JobType("render", QUEUE_RENDER, RenderRequest, run_render, stages=("fetch", "export", "upload")))
-
-
-#: Optimisation stages this build implements, in chain order (the rest of the paper's chain,
-#: generative refinement, second volume stage and joint refinement, lands with later work).
-RECONSTRUCT_CHAIN = ("volume", "generative_refine", "volume2", "pbr", "joint")
-RECONSTRUCT_STAGES_AVAILABLE = ("volume", "pbr")
-GRAPH_ARTIFACT = "checkpoint/scene_graph.pt"
-
-
-def reconstruct_stages(p: ReconstructRequest) -> tuple[str, ...]:
-    """The requested stages in chain order (each once)."""
-    return tuple(st for st in RECONSTRUCT_CHAIN if st in p.stages)
-
-
-def reconstruct_unavailable(p: ReconstructRequest) -> str | None:
-    """Why this build cannot run ``p`` (stages or profile not available), or None."""
-    from core.train.nvs import NVS_PROFILES
-
-    missing = [st for st in p.stages if st not in RECONSTRUCT_STAGES_AVAILABLE]
-    if missing:
-        return (f"reconstruct stages {missing} are not available in this build (available: "
-                f"{list(RECONSTRUCT_STAGES_AVAILABLE)}); ask for stages {list(RECONSTRUCT_STAGES_AVAILABLE)}")
-    if "volume" not in p.stages:
-        return ("stages: a chain without 'volume' is not available: the pbr stage solves for lighting on the "
-                "scene graph of the volume stage of its own chain")
-    if p.profile not in NVS_PROFILES:
-        return f"profile {p.profile!r} is not available on this build's CPU workers (available: {sorted(NVS_PROFILES)})"
-    return None
-
-
-def _upload_dir(ctx: JobContext, out: Path, prefix: str = "") -> None:
-    files = sorted(f for f in out.rglob("*") if f.is_file())
-    for f in files:
-        ctx.check_canceled()
-        ctx.add_artifact(f, prefix + f.relative_to(out).as_posix())
-
-
-def run_volume_stage(ctx: JobContext, p: ReconstructRequest) -> None:
-    """The volume stage (LiDAR init, Gaussians fitted to the training frames, adaptive density
-    control), checkpointed under the data directory so a retried attempt resumes where the killed
-    one stopped. Outputs: the scene graph and sky, held-out renders, summary.json with PSNR/SSIM;
-    the stage's loss curve is recorded for the dashboard."""
-    from dataclasses import replace
-
-    from core.bundle import open_bundle
-    from core.train.nvs import NVS_PROFILES, train_nvs
-
-    bundle = open_bundle(ctx.scene_dir())
-    cfg = NVS_PROFILES[p.profile]
-    if p.iterations_scale != 1.0:
-        s = p.iterations_scale
-        cfg = replace(cfg, iterations=max(1, round(cfg.iterations * s)), densify_from=round(cfg.densify_from * s),
-                      densify_until=round(cfg.densify_until * s), densify_every=max(1, round(cfg.densify_every * s)))
-    ckpt = ctx.settings.data_dir / "checkpoints" / ctx.job.id / "volume"
-    out = ctx.workdir / "out"
-    losses: list[float] = []
-
-    def report(it: int, total: int, rec: dict) -> None:
-        ctx.check_canceled()
-        losses.append(round(float(rec["loss"]), 5))
-        ctx.stage_progress(0.95 * it / total)
-        ctx.stage_metrics({"loss": losses, "gaussians": rec["gaussians"]})
-
-    summary = train_nvs(bundle, cfg, out, progress=False, log_every=max(1, cfg.iterations // 100),
-                        checkpoint_dir=ckpt, checkpoint_every=max(1, cfg.iterations // 10), on_progress=report)
-    ctx.stage_metrics({"loss": [round(h["loss"], 5) for h in summary["history"]], "test_psnr": summary["test_psnr"],
-                       "test_ssim": summary["test_ssim"], "gaussians": summary["gaussians"]})
-    previews = sorted((out / "renders").glob("*.png"))
-    _upload_dir(ctx, out)
-    if previews:
-        ctx.add_artifact(previews[len(previews) // 2], "preview.png")
-    ctx.stage_progress(1.0)
-    shutil.rmtree(ckpt, ignore_errors=True)  # the stage succeeded: its resume state is not needed
-
-
-def run_pbr_stage(ctx: JobContext, p: ReconstructRequest) -> None:
-    """The PBR stage (the paper's Eq. 6, lighting only): geometry and material frozen (this
-    job's volume-stage scene graph, fetched from the artifact store), the environment map fitted
-    by the differentiable PBR pass to the training frames with a log-space prior towards the
-    physically fitted lighting estimate (``core.train.pbr_stage``). Outputs under ``lighting/``:
-    envmap.exr (the scene's own HDR sky, used by the night scenario), envmap_prior.exr,
-    preview.png, summary.json; loss curve and errors in the stage metrics."""
-    from dataclasses import replace
-
-    from core.bundle import open_bundle
-    from core.scene_graph import SceneGraph
-    from core.train.pbr_stage import PBR_STAGE_PROFILES, fit_lighting
-
-    with ctx.db.session() as s:
-        key = s.scalar(select(Artifact.storage_key).where(Artifact.job_id == ctx.job.id,
-                                                          Artifact.name == GRAPH_ARTIFACT))
-    if key is None:
-        raise LookupError(f"job {ctx.job.id}: the volume stage's {GRAPH_ARTIFACT} is not registered")
-    local = ctx.workdir / "scene_graph.pt"
-    ctx.store.get_file(key, local)
-    graph = SceneGraph.load(local)
-    bundle = open_bundle(ctx.scene_dir())
-    cfg = PBR_STAGE_PROFILES.get(p.profile, PBR_STAGE_PROFILES["quick"])
-    if p.iterations_scale != 1.0:
-        cfg = replace(cfg, iterations=max(1, round(cfg.iterations * p.iterations_scale)))
-    losses: list[float] = []
-
-    def report(it: int, total: int, rec: dict) -> None:
-        ctx.check_canceled()
-        losses.append(round(rec["loss"], 5))
-        ctx.stage_progress(0.05 + 0.9 * it / total)
-        if it % 5 == 0 or it == total:
-            ctx.stage_metrics({"loss": losses})
-
-    ctx.stage_progress(0.02)
-    out = ctx.workdir / "lighting"
-    summary = fit_lighting(graph, bundle, out, cfg, on_progress=report)
-    ctx.stage_metrics({"loss": losses, "photometric_psnr_prior": round(summary["photometric_psnr_prior"], 3),
-                       "photometric_psnr_fitted": round(summary["photometric_psnr_fitted"], 3),
-                       **{k: round(v, 3) for k, v in summary.get("ground_truth", {}).items()
-                          if isinstance(v, float)}})
-    _upload_dir(ctx, out, "lighting/")
-    ctx.stage_progress(1.0)
-
-
-register(JobType("reconstruct", QUEUE_TRAIN, ReconstructRequest, run_volume_stage, stages=RECONSTRUCT_CHAIN,
-                 unavailable=reconstruct_unavailable, stages_for=reconstruct_stages,
-                 stage_fns={"volume": run_volume_stage, "pbr": run_pbr_stage}))
-
-
-def format_ts(t: datetime | None) -> str | None:
-    return t.isoformat() if t else None
-
-
-import worker.relight  # noqa: E402,F401  (registers the relight and night job types)

@@ -58,7 +58,9 @@ def run_worker(settings: Settings, queues: list[str], *, burst: bool = False, fo
     bad = [q for q in queues if q not in QUEUES]
     if bad:
         raise ValueError(f"--queues: unknown queue(s) {bad}; known: {list(QUEUES)}")
-    import worker.jobs  # noqa: F401  (import the job code before forking work horses)
+    from worker.registry import job_type
+
+    job_type("render")  # import every job module before forking work horses
     from worker.settings import configure
 
     configure(settings)

@@ -64,6 +64,8 @@ def register(jt: JobType) -> JobType:
 
 def job_type(name: str) -> JobType | None:
     """The registered job type ``name`` (importing the built-in job types first), or None."""
-    import worker.jobs  # noqa: F401  (registers the built-in types)
+    import worker.jobs  # noqa: F401  (registers the render type)
+    import worker.reconstruct  # noqa: F401  (the chain of stages)
+    import worker.relight  # noqa: F401  (relight and night)
 
     return REGISTRY.get(name)

@@ -56,7 +56,6 @@ class Quality(Model):
     shadow_rays: bool = Field(True, description="trace visibility rays through the Gaussians")
     denoiser: Denoiser = Field(Denoiser.oidn, description="none, oidn (Open Image Denoise) or "
                                                          "diffusion (the generative pass)")
-    sdedit_strength: Unit = Field(0.3, description="noise level tau of the generative pass, 0..1")
     denoiser_fallback: Literal["none", "oidn"] | None = Field(
         None, description="if the denoiser's model cannot be used (missing, corrupt, wrong contract), "
                           "use this one instead of failing the job; null: fail")
@@ -222,12 +221,13 @@ class ReconstructRequest(Model):
 
     profile: Literal["tiny", "quick", "benchmark", "paper"] = "quick"
     stages: list[Literal["volume", "generative_refine", "volume2", "pbr", "joint"]] = Field(
-        default_factory=lambda: ["volume", "pbr"], min_length=1, max_length=5,
+        default_factory=lambda: ["volume", "generative_refine", "volume2", "pbr", "joint"], min_length=1, max_length=5,
         description="Stages to run, each its own job, in chain order: volume -> generative_refine -> volume2 -> "
-                    "pbr -> joint. This build runs volume and pbr (the default); asking for another is a 409.")
+                    "pbr -> joint (the paper's chain; default all). A stage needs the stages it reads in the same "
+                    "request (409 otherwise).")
     iterations_scale: float = Field(1.0, gt=0.0, le=100.0, allow_inf_nan=False)
 
-    model_config = {"json_schema_extra": {"examples": [{"profile": "quick", "stages": ["volume", "pbr"]}]}}
+    model_config = {"json_schema_extra": {"examples": [{"profile": "quick"}]}}
 
 
 class RenderRequest(Model):

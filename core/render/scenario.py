@@ -239,6 +239,34 @@ def headlights(graph, intensity: float) -> list:
     return out
 
 
+#: The night sky of a reconstruction that has no recovered environment map (no pbr stage): a
+#: uniform overcast grey (linear radiance), before the night's ``sky_scale``.
+FALLBACK_SKY_RADIANCE = 0.5
+
+
+def scene_sky(run) -> tuple[np.ndarray, str]:
+    """The reconstruction's own sky: ``(envmap [512, 1024, 3], what it is)``. The map the run's
+    latest pbr or joint stage recovered; without one, a uniform grey sky
+    (:data:`FALLBACK_SKY_RADIANCE`), said so in the note. Never the bundle's ground truth."""
+    from core.io.envmap_file import read_envmap
+
+    path, stage = run.latest_envmap()
+    if path is not None:
+        return np.asarray(read_envmap(path), np.float32), f"recovered by the reconstruction's {stage} stage"
+    return (np.full((512, 1024, 3), FALLBACK_SKY_RADIANCE, np.float32),
+            "uniform grey: the reconstruction has no recovered sky (run its pbr stage)")
+
+
+def night_scenario(run, *, sky_scale: float = 0.02, headlights: bool = True, headlight_intensity: float = 3000.0,
+                   exposure_ev: float = 2.0, **kw) -> tuple["Scenario", str]:
+    """The night :class:`Scenario` of a reconstruction run: its own sky (:func:`scene_sky`)
+    scaled by ``sky_scale``, headlights on every tracked object, exposure raised; ``kw`` are
+    the other :class:`Scenario` fields (views, lights, edits, ...). Returns (scenario, sky note)."""
+    env, note = scene_sky(run)
+    return Scenario(envmap=env, sky_scale=sky_scale, headlights=headlights, headlight_intensity=headlight_intensity,
+                    exposure_ev=exposure_ev, **kw), note
+
+
 @dataclass
 class ScenarioResult:
     """What :func:`render_scenario` wrote and measured."""
@@ -260,7 +288,7 @@ def render_scenario(graph, scenario: Scenario, out_dir: str | Path, *,
 
     if not isinstance(scenario, Scenario):
         raise ConfigError(f"scenario: expected a Scenario, got {type(scenario).__name__}")
-    g = apply_edits(graph, list(scenario.edits), what="edits") if scenario.edits else graph
+    g = apply_edits(graph, list(scenario.edits), what="object_edits") if scenario.edits else graph
     lights = to_lights(scenario.lights, g)
     if scenario.headlights:
         lights += headlights(g, scenario.headlight_intensity)
@@ -279,4 +307,5 @@ def render_scenario(graph, scenario: Scenario, out_dir: str | Path, *,
 
 
 __all__ = ["LightSpec", "Scenario", "ScenarioResult", "views_from_frames", "views_from_path", "load_path_json",
-           "to_lights", "headlights", "render_scenario", "HEADLIGHT_OFFSETS"]
+           "to_lights", "headlights", "render_scenario", "HEADLIGHT_OFFSETS", "scene_sky",
+           "night_scenario", "FALLBACK_SKY_RADIANCE"]

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -33,7 +34,7 @@ from typing import Callable
 import numpy as np
 import torch
 
-from core.errors import ConfigError, NumericalError
+from core.errors import ConfigError, FormatError, NumericalError
 
 
 @dataclass(frozen=True)
@@ -172,7 +173,8 @@ def _ldr_map(rgb: np.ndarray) -> np.ndarray:
 
 
 def fit_lighting(graph, bundle, out_dir: str | Path, cfg: PBRStageConfig | None = None, *,
-                 on_progress: Callable[[int, int, dict], None] | None = None) -> dict:
+                 on_progress: Callable[[int, int, dict], None] | None = None,
+                 resume_dir: str | Path | None = None, checkpoint_every: int = 0) -> dict:
     """Run the stage on a reconstructed scene graph and its bundle; write the outputs (module
     docstring) to ``out_dir`` and return the summary.
 
@@ -183,6 +185,9 @@ def fit_lighting(graph, bundle, out_dir: str | Path, cfg: PBRStageConfig | None 
         cfg: :class:`PBRStageConfig`.
         on_progress: ``(step, total, record)`` after each step (record has ``loss``, ``photo``,
             ``prior``, ``lambda_e``); may raise to stop the stage.
+        resume_dir: where the optimisation state (map, Adam moments, random state, history) is
+            saved every ``checkpoint_every`` steps; a run started with a state there continues
+            from it (a killed stage resumes).
     """
     from core.io.envmap_file import write_envmap
     from core.io.images import write_png
@@ -228,7 +233,19 @@ def fit_lighting(graph, bundle, out_dir: str | Path, cfg: PBRStageConfig | None 
     opt = torch.optim.Adam([env.param], lr=cfg.lr)
     history = []
     usable = [i for i, f in enumerate(frames) if f.nonsky.numel()]
-    for it in range(cfg.iterations):
+    start = 0
+    state_file = Path(resume_dir) / "state.pt" if resume_dir is not None else None
+    if state_file is not None and state_file.is_file():
+        try:
+            st = torch.load(state_file, map_location="cpu", weights_only=True)
+        except Exception as exc:  # noqa: BLE001 - a corrupt state is reported, never silently reset
+            raise FormatError(f"{state_file}: unreadable PBR-stage state ({exc})") from exc
+        with torch.no_grad():
+            env.param.copy_(st["env"])
+        opt.load_state_dict(st["opt"])
+        gen.set_state(st["gen"])
+        history, start = st["history"], int(st["iteration"])
+    for it in range(start, cfg.iterations):
         f = frames[usable[int(torch.randint(len(usable), (1,), generator=gen))]]
         n = f.nonsky.numel()
         idx = f.nonsky[torch.randperm(n, generator=gen)[:min(cfg.pixels, n)]]
@@ -248,6 +265,12 @@ def fit_lighting(graph, bundle, out_dir: str | Path, cfg: PBRStageConfig | None 
         rec = {"step": it + 1, "loss": float(loss.detach()), "photo": float(photo.detach()),
                "prior": float(prior.detach()), "lambda_e": lam}
         history.append(rec)
+        if state_file is not None and checkpoint_every and (it + 1) % checkpoint_every == 0:
+            state_file.parent.mkdir(parents=True, exist_ok=True)
+            tmp = state_file.with_name("state.pt.tmp")
+            torch.save({"iteration": it + 1, "env": env.param.detach().clone(), "opt": opt.state_dict(),
+                        "gen": gen.get_state(), "history": history}, tmp)
+            tmp.replace(state_file)
         if on_progress is not None:
             on_progress(it + 1, cfg.iterations, rec)
     env.rebuild_sampler()
@@ -263,7 +286,8 @@ def fit_lighting(graph, bundle, out_dir: str | Path, cfg: PBRStageConfig | None 
     summary = {"config": asdict(cfg), "frames": len(frames), "iterations": cfg.iterations,
                "photometric_psnr_prior": psnr_before, "photometric_psnr_fitted": psnr_after,
                "sun_source": est.sun_source, "sun_dir_prior": [float(x) for x in est.sun_dir],
-               "history": history, "seconds": {"gbuffers": t_frames, "total": time.perf_counter() - t0}}
+               "history": history, "resumed_from_iteration": start,
+               "seconds": {"gbuffers": t_frames, "total": time.perf_counter() - t0}}
     sep = np.full((4, 1024, 3), 255, np.uint8)
     strip = np.concatenate([x for r in rows for x in (r, sep)][:-1])
     write_png(out / "preview.png", strip[::2, ::2])
@@ -293,7 +317,9 @@ def run_stage(ctx) -> dict:
             ctx.on_progress(it, n, rec)
 
     try:
-        summary = fit_lighting(graph, ctx.bundle, ctx.out_dir, cfg, on_progress=report)
+        summary = fit_lighting(graph, ctx.bundle, ctx.out_dir, cfg, on_progress=report, resume_dir=ctx.resume_dir,
+                               checkpoint_every=max(1, total // 10))
+        shutil.rmtree(ctx.resume_dir, ignore_errors=True)  # done: the resume state is not needed
     finally:
         if bar is not None:
             bar.close()

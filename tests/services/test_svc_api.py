@@ -315,14 +315,14 @@ def test_cancel_queued_job(client, scene_id, settings):
     ("relight", {"envmap_name": "city", "rotation_deg": 30, "lights": [
         {"kind": "point", "position": [1, 2, 3], "intensity": 50}]}),  # no reconstruction yet
     ("night", {"street_lights": True, "headlights": False}),  # no reconstruction yet
-    ("reconstruct", {"profile": "quick", "stages": ["volume", "joint"]}),  # joint refinement has not landed
+    ("reconstruct", {"profile": "quick", "stages": ["volume", "joint"]}),  # joint needs pbr in its chain
     ("reconstruct", {"profile": "quick", "stages": ["pbr"]}),  # pbr needs the volume stage in its chain
-    ("reconstruct", {"profile": "paper", "stages": ["volume"]}),  # a GPU profile
+    ("reconstruct", {"profile": "quick", "stages": ["volume2"]}),  # volume2 needs volume + generative_refine
 ])
 def test_unbuilt_job_types_answer_409_and_queue_nothing(client, scene_id, app, settings, path, body):
     r = client.post(f"/scenes/{scene_id}/{path}", json=body)
     assert r.status_code == 409, r.text
-    why = "no finished reconstruction" if path in ("relight", "night") else "not available"
+    why = "no finished reconstruction" if path in ("relight", "night") else "of the same chain"
     assert why in r.json()["detail"] and "no job was queued" in r.json()["detail"]
     with app.state.db.session() as s:
         assert s.scalar(select(func.count()).select_from(Job)) == 0

@@ -153,7 +153,7 @@ def test_killed_reconstruct_resumes_from_its_checkpoint(settings, tmp_path, tiny
     import torch
 
     c, jid, w1 = _reconstruct_on_one_worker(settings, tmp_path, tiny_scene, procs, ["volume"], 10)
-    state = Path(settings.data_dir) / "checkpoints" / jid / "volume" / "train_state.pt"
+    state = Path(settings.data_dir) / "runs" / jid / "volume" / "resume" / "train_state.pt"
     wait_for(lambda: state.is_file() or None, 180, f"a checkpoint of the volume stage\n{w1.tail()}")
     saved = torch.load(state, weights_only=True)["iteration"]
     assert job(c, jid)["state"] == "running"
@@ -165,7 +165,7 @@ def test_killed_reconstruct_resumes_from_its_checkpoint(settings, tmp_path, tiny
     assert done["state"] == "done", done
     assert done["attempts"] == 2
     arts = {a["name"]: a for a in c.get(f"/jobs/{jid}/artifacts").json()["items"]}
-    summary = c.get(arts["summary.json"]["url"]).json()
+    summary = c.get(arts["volume/summary.json"]["url"]).json()
     assert summary["iterations"] == 600
     assert summary["resumed_from_iteration"] >= saved > 0, summary["resumed_from_iteration"]
 
@@ -199,8 +199,8 @@ def test_killed_chain_stage_is_retried_without_rerunning_finished_stages(setting
         keys = dict(s.execute(select(Artifact.name, Artifact.storage_key).where(Artifact.job_id == jid)).all())
         assert s.scalar(select(JobStage.finished_at).where(JobStage.job_id == jid, JobStage.name == "volume")) \
             == volume_done  # not run again
-    assert f"jobs/{jid}/volume.a1/" in keys["checkpoint/scene_graph.pt"]
-    assert f"jobs/{jid}/pbr.a2/" in keys["lighting/envmap.exr"]
+    assert f"jobs/{jid}/volume.a1/" in keys["volume/checkpoint/scene_graph.pt"]
+    assert f"jobs/{jid}/pbr.a2/" in keys["pbr/envmap.exr"]
     assert "volume.a2" not in " ".join(keys.values())
     names = {a["name"] for a in c.get(f"/jobs/{jid}/artifacts").json()["items"]}
-    assert {"checkpoint/scene_graph.pt", "lighting/envmap.exr", "preview.png"} <= names
+    assert {"volume/checkpoint/scene_graph.pt", "pbr/envmap.exr", "pbr/preview.png"} <= names

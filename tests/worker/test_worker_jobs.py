@@ -290,14 +290,16 @@ def test_reconstruct_stage_chain_end_to_end(client, app, settings, tiny_zip):
     assert [(st["name"], st["state"]) for st in job["stages"]] == [("volume", "done"), ("pbr", "done")]
     assert vol_rq.get_status(refresh=True) == "finished" and pbr_rq.get_status(refresh=True) == "finished"
     arts = {a["name"]: a for a in client.get(f"/jobs/{jid}/artifacts").json()["items"]}
-    assert {"summary.json", "preview.png", "checkpoint/scene_graph.pt", "test_renders.mp4", "lighting/envmap.exr",
-            "lighting/envmap_prior.exr", "lighting/preview.png", "lighting/summary.json"} <= set(arts), sorted(arts)
-    summary = _json.loads(client.get(arts["summary.json"]["url"]).content)
+    assert {"volume/summary.json", "volume/done.json", "volume/checkpoint/scene_graph.pt", "volume/test_renders.mp4",
+            "pbr/envmap.exr", "pbr/envmap_prior.exr", "pbr/preview.png", "pbr/summary.json",
+            "priors/priors.npz"} <= set(arts), sorted(arts)
+    assert not any("/resume/" in n for n in arts)  # the resume state is not an output
+    summary = _json.loads(client.get(arts["volume/summary.json"]["url"]).content)
     assert summary["iterations"] == 30 and 5 < summary["test_psnr"] < 60
-    lighting = _json.loads(client.get(arts["lighting/summary.json"]["url"]).content)
+    lighting = _json.loads(client.get(arts["pbr/summary.json"]["url"]).content)
     assert lighting["iterations"] == 15 and len(lighting["history"]) == 15
     env = __import__("core.io.envmap_file", fromlist=["read_envmap"]).read_envmap(
-        _download(client, arts["lighting/envmap.exr"]["url"], settings.data_dir / "env.exr"))
+        _download(client, arts["pbr/envmap.exr"]["url"], settings.data_dir / "env.exr"))
     assert env.shape == (512, 1024, 3) and np.isfinite(env).all() and env.min() >= 0 and env.max() > 0
     from worker.db import JobStage
 
@@ -305,13 +307,13 @@ def test_reconstruct_stage_chain_end_to_end(client, app, settings, tiny_zip):
         st = {x.name: x for x in s.scalars(select(JobStage).where(JobStage.job_id == jid))}
         assert len(st["volume"].metrics["loss"]) == 30 and st["volume"].metrics["test_psnr"] == summary["test_psnr"]
         assert len(st["pbr"].metrics["loss"]) == 15
-        assert st["pbr"].metrics["photometric_psnr_fitted"] == round(lighting["photometric_psnr_fitted"], 3)
-    # the resume state of a finished job is cleaned up
-    assert not (settings.data_dir / "checkpoints" / jid / "volume").exists()
+        assert st["pbr"].metrics["photometric_psnr_fitted"] == lighting["photometric_psnr_fitted"]
+    # the resume state of a finished stage is cleaned up
+    assert not (settings.data_dir / "runs" / jid / "volume" / "resume").exists()
 
     # relight and night now run on the reconstruction (the render queue)
     objects = [n.name for n in __import__("core.scene_graph", fromlist=["SceneGraph"]).SceneGraph.load(
-        _download(client, arts["checkpoint/scene_graph.pt"]["url"], settings.data_dir / "g.pt")).nodes]
+        _download(client, arts["volume/checkpoint/scene_graph.pt"]["url"], settings.data_dir / "g.pt")).nodes]
     body = {"envmap_name": "sunset", "rotation_deg": 40, "exposure_ev": 0.5, "frames": {"split": "all", "stop": 3},
             "quality": {"rays_per_pixel": 8, "denoiser": "diffusion", "denoiser_fallback": "oidn"},
             "lights": [{"kind": "point", "position": [0, 0, 3], "intensity": 20}]}
@@ -343,7 +345,7 @@ def test_reconstruct_stage_chain_end_to_end(client, app, settings, tiny_zip):
     assert nj["state"] == "done", nj
     with app.state.db.session() as s:  # the night sky is the one the pbr stage recovered
         m = s.scalars(select(JobStage).where(JobStage.job_id == night.json()["id"], JobStage.name == "fetch")).one()
-        assert "lighting/envmap.exr" in m.metrics["sky"], m.metrics
+        assert "recovered by the reconstruction's pbr stage" in m.metrics["sky"], m.metrics
     assert {a["name"] for a in client.get(f"/jobs/{night.json()['id']}/artifacts").json()["items"]} == {"preview.png"}
 
 

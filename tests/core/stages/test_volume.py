@@ -6,14 +6,17 @@ from dataclasses import replace
 import pytest
 
 from core.bundle import open_bundle
-from core.train.nvs import NVS_PROFILES, train_nvs
+from core.stages.chain import profile_settings
+from core.stages.volume import run_volume
+
+TINY = profile_settings("tiny", "volume")
 
 pytestmark = pytest.mark.mitsuba
 
 
 def test_tiny_training_improves_and_writes_outputs(tiny_scene, tmp_path):
-    cfg = replace(NVS_PROFILES["tiny"], iterations=40, densify_until=30)
-    s = train_nvs(open_bundle(tiny_scene), cfg, tmp_path, progress=False, log_every=10)
+    cfg = replace(TINY, iterations=40, densify_until=30)
+    s = run_volume(open_bundle(tiny_scene), cfg, tmp_path, progress=False, log_every=10)
     hist = s["history"]
     assert hist[-1]["loss"] < hist[0]["loss"]
     assert 10 < s["test_psnr"] < 60 and 10 < s["train_psnr"] < 60
@@ -27,9 +30,9 @@ def test_gaussian_cap_holds_across_scene_graph_nodes(tiny_scene):
 
     b = open_bundle(tiny_scene)
     cap = 1500
-    cfg = replace(NVS_PROFILES["tiny"], iterations=30, densify_from=5, densify_every=5, densify_until=30,
+    cfg = replace(TINY, iterations=30, densify_from=5, densify_every=5, densify_until=30,
                   density=DensityConfig(max_gaussians=cap, grad_threshold=0.0))
-    s = train_nvs(b, cfg, None, progress=False)
+    s = run_volume(b, cfg, None, progress=False)
     assert s["gaussians"] <= cap
 
 
@@ -37,7 +40,7 @@ def test_resume_from_checkpoint_matches_an_uninterrupted_run(tiny_scene, tmp_pat
     """A run stopped after its checkpoint at step 20 and resumed ends exactly where a run that
     was never interrupted ends (same Gaussians, same loss history)."""
     b = open_bundle(tiny_scene)
-    cfg = replace(NVS_PROFILES["tiny"], iterations=30, densify_from=5, densify_every=10, densify_until=25)
+    cfg = replace(TINY, iterations=30, densify_from=5, densify_every=10, densify_until=25)
 
     class Stop(Exception):
         pass
@@ -47,11 +50,11 @@ def test_resume_from_checkpoint_matches_an_uninterrupted_run(tiny_scene, tmp_pat
             raise Stop()
 
     with pytest.raises(Stop):
-        train_nvs(b, cfg, None, progress=False, log_every=10, checkpoint_dir=tmp_path / "ck",
+        run_volume(b, cfg, None, progress=False, log_every=10, checkpoint_dir=tmp_path / "ck",
                   checkpoint_every=10, on_progress=stop_after_20)
-    resumed = train_nvs(b, cfg, None, progress=False, log_every=10, checkpoint_dir=tmp_path / "ck",
+    resumed = run_volume(b, cfg, None, progress=False, log_every=10, checkpoint_dir=tmp_path / "ck",
                         checkpoint_every=10)
-    straight = train_nvs(b, cfg, None, progress=False, log_every=10)
+    straight = run_volume(b, cfg, None, progress=False, log_every=10)
     assert [h["it"] for h in resumed["history"]] == [10, 20, 30]
     assert resumed["gaussians"] == straight["gaussians"]
     for a, c in zip(resumed["history"], straight["history"]):
@@ -66,4 +69,4 @@ def test_corrupt_checkpoint_is_an_error_not_a_silent_restart(tiny_scene, tmp_pat
     ck.mkdir()
     (ck / "train_state.pt").write_bytes(b"not a checkpoint")
     with pytest.raises(FormatError, match="train_state.pt"):
-        train_nvs(open_bundle(tiny_scene), NVS_PROFILES["tiny"], None, progress=False, checkpoint_dir=ck)
+        run_volume(open_bundle(tiny_scene), TINY, None, progress=False, checkpoint_dir=ck)
