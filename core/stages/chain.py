@@ -193,10 +193,10 @@ def profile_settings(profile: str, stage: str, overrides: dict | None = None):
 
 def scale_iterations(cfg, scale: float):
     """``cfg`` with its iteration counts (and the volume stage's density schedule) scaled."""
-    if scale == 1.0:
-        return cfg
-    if not scale > 0:
-        raise ConfigError(f"iterations_scale: must be > 0, got {scale!r}")
+    if not (isinstance(scale, (int, float)) and scale > 0 and scale < float("inf")):
+        raise ConfigError(f"iterations_scale: must be a finite number > 0, got {scale!r}")
+    if scale == 1.0 or not hasattr(cfg, "iterations"):
+        return cfg  # a stage without iterations (generative_refine) is not scaled
     upd = {"iterations": max(1, round(cfg.iterations * scale))}
     for k in ("densify_from", "densify_until", "densify_every"):
         if hasattr(cfg, k) and getattr(cfg, k) < 10**8:
@@ -328,6 +328,20 @@ class RunDir:
         return pri, "inverse_model"
 
 
+def scene_skips(bundle, stage: str) -> list[str]:
+    """What ``stage`` leaves out because the bundle does not have it (for the stage summary)."""
+    m = bundle.manifest
+    out = []
+    if not m.lidar and stage in ("volume", "volume2", "joint"):
+        out.append("LiDAR depth term: the bundle has no LiDAR")
+    if not any(f.sky_mask for f in m.frames) and stage in ("volume", "volume2", "pbr", "joint"):
+        out.append("sky masks: the bundle has no sky masks; non-sky pixels come from the render's opacity"
+                   + (" and the prior's surfaces" if stage != "pbr" else ""))
+    if not m.objects:
+        out.append("object nodes: the bundle has no tracked objects (background only)")
+    return out
+
+
 def run_stage(name: str, bundle, run: RunDir, settings=None, *, progress: bool = True,
               on_progress: Callable[[int, int, dict], None] | None = None) -> dict:
     """Run one stage on ``run`` (its inputs must be done) and mark it done. Returns its summary.
@@ -347,6 +361,7 @@ def run_stage(name: str, bundle, run: RunDir, settings=None, *, progress: bool =
     t0 = time.perf_counter()
     summary = mod.run_stage(ctx)
     summary = {"stage": name, "paper": spec.paper, "settings": _jsonable(cfg), **summary}
+    summary.setdefault("skipped", scene_skips(bundle, name))
     summary.setdefault("seconds", round(time.perf_counter() - t0, 2))
     run.mark_done(name, summary)
     return summary

@@ -564,7 +564,7 @@ def _skips(bundle, priors, priors_in_loss: bool) -> tuple[list[str], bool]:
                    "inverse model's depth prior" if priors is not None else
                    "LiDAR: the bundle has no LiDAR and no depth prior is available")
     if not any(f.sky_mask for f in m.frames):
-        out.append("sky masks: the bundle has none; the opacity term uses the prior's sky (no surface) instead"
+        out.append("sky masks: the bundle has no sky masks; the opacity term uses the prior's sky (no surface) instead"
                    if priors_in_loss else "opacity term: the bundle has no sky masks")
     if not m.objects:
         out.append("object nodes: the bundle has no tracked objects (background only)")
