@@ -47,6 +47,8 @@ class EvalSettings:
     """CPU threads."""
     flip: bool = True
     """Compute FLIP (flip-evaluator); off saves ~0.1 s per frame."""
+    normal_offset_m: float = 0.1
+    """Shadow-ray start offset along the normal, metres (:attr:`core.render.scenario.Scenario.normal_offset_m`)."""
 
 
 def _flip(ref: np.ndarray, test: np.ndarray) -> float:
@@ -79,11 +81,8 @@ def evaluate_run(run_dir: str | Path, bundle=None, settings: EvalSettings | None
     directory) and returns it. Raises ConfigError when the bundle has no ground truth or the run
     has no reconstructed scene graph."""
     from core.bundle import open_bundle
-    from core.gen.denoise import denoise
     from core.gen.lighting import brightest_direction, sun_direction_error_deg
     from core.metrics import angular_error_deg, si_psnr
-    from core.pbr.envmap import EnvironmentMap
-    from core.pbr.render import Camera, ClipRenderer, PBRSettings
     from core.raster import RasterSettings, rasterize_gaussians
     from core.stages.chain import RunDir
     from core.tonemap import hdr_to_ldr
@@ -140,25 +139,26 @@ def evaluate_run(run_dir: str | Path, bundle=None, settings: EvalSettings | None
     res["nvs"] = _mean(nvs)
 
     # -- PBR renders: re-render under the recovered map, relight under held-back maps ----------
-    def pbr_clip(env: EnvironmentMap, frames) -> list[np.ndarray]:
-        ps = PBRSettings(rays_per_pixel=s.rays_per_pixel, exposure=ex, gamma=gamma, threads=s.threads)
-        cr = ClipRenderer(graph, env, ps)
-        ldr, alb, nrm = [], [], []
-        for i, f in enumerate(frames):
-            c = b.camera(f)
-            cam = Camera(np.asarray(f.cam_to_world, np.float64), c.fx, c.fy, c.cx, c.cy, c.width, c.height)
-            o = cr.render(cam, time_s=float(times[f.time_index]), frame_index=i)
-            ldr.append(o.ldr.float().numpy())
-            alb.append(o.gbuffers["albedo"].float().numpy().clip(0, 1))
-            nrm.append(o.gbuffers["normal"].float().numpy())
-        d = denoise(np.stack(ldr), np.stack(alb), np.stack(nrm), backend=s.denoiser, fallback="none")
-        return list(np.clip(d.frames, 0, 1))
+    # through the same path as a relight request (core.render.scenario), denoiser included
+    import tempfile
+
+    from core.render.scenario import Scenario, render_scenario, views_from_frames
+
+    all_views = {v.name: v for v in views_from_frames(b, "all")}
+
+    def pbr_clip(env_map: np.ndarray, frames) -> list[np.ndarray]:
+        sc = Scenario(views=tuple(all_views[f.id] for f in frames), envmap=np.asarray(env_map, np.float32),
+                      base_exposure=ex, gamma=gamma, rays_per_pixel=s.rays_per_pixel, denoiser=s.denoiser,
+                      denoiser_fallback=None, normal_offset_m=s.normal_offset_m, outputs=("png",))
+        with tempfile.TemporaryDirectory(prefix="brdf-eval-") as tmp:
+            r = render_scenario(graph, sc, tmp)
+        return list(r.result.frames)
 
     if env_path is not None:
         from core.io.envmap_file import read_envmap
 
         env_rec = read_envmap(env_path)
-        frames_rr = pbr_clip(EnvironmentMap(env_rec, resample_to=(512, 1024)), test)
+        frames_rr = pbr_clip(env_rec, test)
         res["rerender"] = _mean([_img_metrics(p, b.load_image(f), False) for p, f in zip(frames_rr, test)])
         gt_env = b.load_envmap()
         from core.pbr.envmap import resample
@@ -173,8 +173,7 @@ def evaluate_run(run_dir: str | Path, bundle=None, settings: EvalSettings | None
         frames = [f for f in b.frames("test") if f.id in rl.frames]
         if not frames:
             continue
-        env = EnvironmentMap(b.load_envmap(rl.name), resample_to=(512, 1024))
-        preds = pbr_clip(env, frames)
+        preds = pbr_clip(b.load_envmap(rl.name), frames)
         rows = []
         for p, f in zip(preds, frames):
             from core.io.exr import read_exr

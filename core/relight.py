@@ -60,6 +60,8 @@ class RelightResult:
     seconds_per_frame: float = 0.0
     denoiser: str = "none"
     denoiser_note: str | None = None
+    frames: np.ndarray | None = None
+    """[T, H, W, 3] the denoised LDR clip in [0, 1] (when mp4 or png was asked for)."""
 
 
 def _edit_pose(poses: torch.Tensor, offset, yaw_deg: float) -> torch.Tensor:
@@ -159,6 +161,7 @@ def render_clip(scene, env: EnvironmentMap, views: Sequence[View], out_dir: str 
         d = denoise(clip, np.clip(np.stack(albedo), 0.0, 1.0), np.stack(normal), backend=denoiser,
                     fallback=denoiser_fallback, **kw)
         clip = np.clip(d.frames, 0.0, 1.0)
+        res.frames = clip
         res.denoiser = d.backend
         res.denoiser_note = d.fallback_reason
         if "mp4" in outputs:

@@ -113,6 +113,11 @@ class Scenario:
     """PBR rays per pixel."""
     shadows: bool = True
     """Ray-traced visibility (off: every light sample is visible)."""
+    normal_offset_m: float = 0.1
+    """Shadow rays start this far along the normal, metres. A reconstruction's surfaces are
+    Gaussians a few centimetres thick, not the oracle's thin ones (the PBR pass's default 0.02):
+    measured on the default scene's quick reconstruction, 0.1 raises the relit SSIM from 0.54 to
+    0.59 (sunset) and 0.46 to 0.51 (forest) at the same PSNR (+-0.15 dB)."""
     denoiser: str = "oidn"
     """``none``, ``oidn`` or ``diffusion``."""
     denoiser_fallback: str | None = "none"
@@ -138,6 +143,8 @@ class Scenario:
             raise ConfigError(f"denoiser: must be one of {DENOISERS}, got {self.denoiser!r}")
         if self.denoiser_fallback is not None and self.denoiser_fallback not in DENOISERS:
             raise ConfigError(f"denoiser_fallback: must be one of {DENOISERS} or None, got {self.denoiser_fallback!r}")
+        if not (isinstance(self.normal_offset_m, (int, float)) and 0 <= self.normal_offset_m <= 10):
+            raise ConfigError(f"normal_offset_m: must be in [0, 10] metres, got {self.normal_offset_m!r}")
         if not (isinstance(self.rays_per_pixel, int) and 1 <= self.rays_per_pixel <= 4096):
             raise ConfigError(f"rays_per_pixel: must be an int in [1, 4096], got {self.rays_per_pixel!r}")
 
@@ -296,7 +303,8 @@ def render_scenario(graph, scenario: Scenario, out_dir: str | Path, *,
                          rotation_deg=scenario.rotation_deg, resample_to=(512, 1024))
     settings = PBRSettings(rays_per_pixel=scenario.rays_per_pixel,
                            exposure=scenario.base_exposure * 2.0 ** scenario.exposure_ev, gamma=scenario.gamma,
-                           shadows=scenario.shadows, reuse_visibility=len(scenario.views) > 1)
+                           shadows=scenario.shadows, normal_offset=scenario.normal_offset_m,
+                           reuse_visibility=len(scenario.views) > 1)
     res = render_clip(g, env, list(scenario.views), out_dir, settings=settings, lights=lights,
                       outputs=list(scenario.outputs), denoiser=scenario.denoiser,
                       denoiser_fallback=scenario.denoiser_fallback, fps=scenario.fps, on_frame=on_frame)

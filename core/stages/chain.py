@@ -302,10 +302,9 @@ class RunDir:
             raise ConfigError(f"{self.root}: no finished stage with a scene graph (run the volume stage first)")
         d, st = found
         graph = SceneGraph.load(d / "scene_graph.pt")
-        sky = SkyDome(64, 128)
         f = d / "sky.pt"
-        if f.is_file():
-            sky.load_state_dict(torch.load(f, map_location="cpu", weights_only=True)["sky"])
+        sky = (SkyDome.from_state(torch.load(f, map_location="cpu", weights_only=True)["sky"]) if f.is_file()
+               else SkyDome(64, 128))
         return graph, sky, st
 
     def latest_envmap(self, before: str | None = None) -> tuple[Path | None, str | None]:

@@ -108,6 +108,7 @@ def decode_to_priors(x: np.ndarray, cam_to_world: np.ndarray) -> dict[str, np.nd
 
 def run_inverse_model(bundle, split: str = "train", *, model: str | Path = DEFAULT_INVERSE_MODEL,
                       threads: int = 2, anchors: dict[str, np.ndarray] | None = None, sigma_tau: float | None = None,
+                      steps: int = 1,
                       on_clip: Callable[[int, int], None] | None = None) -> GBufferPriors:
     """G-buffer priors of every frame of ``split`` from the inverse model.
 
@@ -118,6 +119,7 @@ def run_inverse_model(bundle, split: str = "train", *, model: str | Path = DEFAU
             reconstruction; with ``sigma_tau`` they are refined by SDEdit (the generative
             refinement stage) instead of sampled from noise.
         sigma_tau: SDEdit noise level of the anchors (needed with ``anchors``).
+        steps: Euler steps of the SDEdit from ``sigma_tau``.
         on_clip: ``(done, total)`` after each camera clip.
 
     Raises:
@@ -146,7 +148,7 @@ def run_inverse_model(bundle, split: str = "train", *, model: str | Path = DEFAU
             if missing:
                 raise ConfigError(f"anchors: no rendered intrinsics for frame(s) {missing[:5]}")
             x_in = torch.from_numpy(np.stack([anchors[f.id] for f in clip]).astype(np.float32))
-            y = sdedit(den, x_in, {"rgb": rgb}, SamplerSettings(sigma_tau=float(sigma_tau), steps=1))
+            y = sdedit(den, x_in, {"rgb": rgb}, SamplerSettings(sigma_tau=float(sigma_tau), steps=steps))
         y = y.numpy()
         if not np.isfinite(y).all():
             raise NumericalError(f"inverse model: non-finite G-buffer output for camera {clip[0].camera}")

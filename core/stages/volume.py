@@ -73,6 +73,10 @@ class VolumeSettings:
     """Final position learning rate as a fraction of the initial one (exponential decay)."""
     sky_lr: float = 0.05
     """Learning rate of the sky dome."""
+    sky_height: int = 256
+    """Rows of the sky dome texture (columns = 2 x rows). The frames' sky holds detail (distant
+    buildings and trees of the environment); a coarse dome cannot show it and Gaussians are
+    recruited instead: sky floaters."""
     threads: int = 2
     """CPU threads of the rasterizer kernels."""
     torch_threads: int = 1
@@ -366,7 +370,7 @@ def run_volume(bundle: SceneBundle, cfg: VolumeSettings, out_dir: str | Path | N
             raise ConfigError("bundle: has no train frames")
         ckpt = Path(checkpoint_dir) if checkpoint_dir is not None else None
         state = _load_state(ckpt) if ckpt is not None else None
-        sky = SkyDome(64, 128, _mean_sky_colour(train))
+        sky = SkyDome(cfg.sky_height, 2 * cfg.sky_height, _mean_sky_colour(train))
         if state is not None:
             graph = SceneGraph.load(ckpt / state["graph_file"])
         elif cfg.init_from_graph:
@@ -376,7 +380,7 @@ def run_volume(bundle: SceneBundle, cfg: VolumeSettings, out_dir: str | Path | N
             graph = SceneGraph.load(Path(init_dir) / "scene_graph.pt")
             sky_file = Path(init_dir) / "sky.pt"
             if sky_file.is_file():
-                sky.load_state_dict(torch.load(sky_file, map_location="cpu", weights_only=True)["sky"])
+                sky = SkyDome.from_state(torch.load(sky_file, map_location="cpu", weights_only=True)["sky"])
         else:
             bg, nodes = gaussians_from_lidar(bundle, cfg.init, sweeps=init_sweeps)
             graph = SceneGraph.from_bundle_objects(bundle.manifest, bg, nodes)

@@ -21,6 +21,14 @@ class SkyDome(torch.nn.Module):
         init = torch.logit(torch.tensor(init_rgb).clamp(0.02, 0.98))
         self.logits = torch.nn.Parameter(init.expand(height, width, 3).clone())
 
+    @classmethod
+    def from_state(cls, state: dict) -> "SkyDome":
+        """A dome of the size a saved ``state_dict`` holds, loaded from it."""
+        h, w, _ = state["logits"].shape
+        sky = cls(int(h), int(w))
+        sky.load_state_dict(state)
+        return sky
+
     def forward(self, dirs_world: torch.Tensor) -> torch.Tensor:
         """dirs_world: [..., 3] -> RGB [..., 3]."""
         h, w, _ = self.logits.shape
