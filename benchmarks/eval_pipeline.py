@@ -1,0 +1,174 @@
+"""The inverse-rendering pipeline measured end to end: reconstruct (``core.stages.chain``) and
+evaluate (``core.evaluate``, the paper's metrics) on development and test streets made by
+``brdf generate``, plus the bundled default scene; writes ``benchmarks/results/eval.json``.
+
+Protocol: choices are made on the development streets (and the default scene, which is the
+development scene of the quick profile); the test streets are run once at the end. Each street's
+seed, map and rotation are used nowhere else in the project (not in the generative models'
+training data, not in the lighting prior's development streets).
+
+    python benchmarks/eval_pipeline.py --data /path/to/streets --profile quick
+    python benchmarks/eval_pipeline.py --data /path/to/streets --profile benchmark --roles test
+
+Missing streets are generated first (about 8 min each on 2 cores). Runs are kept under
+``<data>/runs/<street>_<profile>_<row>`` and resumed, so an interrupted benchmark continues.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+#: name -> (role, seed, map, rotation in degrees). City and sunrise are the sunny maps.
+STREETS = {
+    "dev1": ("dev", 101, "city", 60.0),
+    "dev2": ("dev", 102, "sunrise", 200.0),
+    "test1": ("test", 201, "city", 130.0),
+    "test2": ("test", 202, "sunrise", 300.0),
+}
+#: How the streets are generated: the quick synth profile at 16 + 16 frames, 128 samples per
+#: pixel, relit ground truth under three held-back maps on every 4th test frame.
+STREET_SETTINGS = ("relight_every=4", "num_frames=16", "spp=128")
+#: Pipeline variants (the paper's Table 2 rows): stages and stage overrides.
+NO_PRIORS = {"lambda_normal": 0.0, "lambda_albedo": 0.0, "lambda_roughness": 0.0, "lambda_metallic": 0.0}
+ROWS = {
+    "full": {"stages": None, "overrides": {}, "denoiser": "oidn"},
+    "colour_only": {"stages": ["volume"], "overrides": {"volume": {**NO_PRIORS, "lambda_prior_depth": 0.0}},
+                    "denoiser": "oidn"},
+}
+KEYS = ("albedo_si_psnr", "roughness_rmse", "metallic_rmse", "normal_mae_deg", "nvs_psnr", "nvs_ssim", "nvs_flip",
+        "rerender_psnr", "relight_psnr", "relight_ssim", "relight_flip", "relight_unrelit_input_ssim",
+        "sun_error_deg")
+
+
+def machine() -> dict:
+    cpu = "unknown"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return {"cpu": cpu, "cores": os.cpu_count(), "python": platform.python_version(), "platform": platform.platform()}
+
+
+def make_street(data: Path, name: str) -> Path:
+    role, seed, envmap, rot = STREETS[name]
+    out = data / name
+    if (out / "bundle.json").is_file():
+        return out
+    cmd = [sys.executable, "-m", "core", "generate", "--profile", "quick", "--seed", str(seed), "--envmap", envmap,
+           "--set", f"envmap_rotation_deg={rot}", "--out", str(out), "--workers", "2", "--quiet"]
+    for kv in STREET_SETTINGS:
+        cmd += ["--set", kv]
+    print("generating", name, ":", " ".join(cmd[1:]), flush=True)
+    subprocess.run(cmd, check=True, cwd=REPO)
+    return out
+
+
+def run_row(scene: Path, run_dir: Path, profile: str, row: str) -> dict:
+    """Reconstruct (resuming a kept run) and evaluate; the evaluation summary plus timings."""
+    from core.evaluate import EvalSettings, evaluate_run
+    from core.stages.chain import RUN_FILE, RunDir, run_pipeline
+
+    spec = ROWS[row]
+    t0 = time.perf_counter()
+    res = run_pipeline(scene, run_dir, profile, stages=spec["stages"], overrides=spec["overrides"],
+                       resume=(run_dir / RUN_FILE).is_file(), progress=False,
+                       on_stage=lambda n, w, s: print(f"    {n}: {w}", flush=True))
+    wall = time.perf_counter() - t0
+    ev = evaluate_run(run_dir, settings=EvalSettings(denoiser=spec["denoiser"]))
+    run = RunDir(run_dir)
+    stage_seconds = {n: float((run.summary(n) or {}).get("seconds") or 0.0) for n in res}
+    return {**{k: ev["summary"].get(k) for k in KEYS}, "stage_seconds": stage_seconds,
+            "pipeline_seconds": round(sum(stage_seconds.values()), 1), "wall_seconds_this_call": round(wall, 1),
+            "evaluation_seconds": ev["seconds"]}
+
+
+def mean_row(rows: list[dict]) -> dict:
+    out = {}
+    for k in KEYS:
+        v = [r[k] for r in rows if isinstance(r.get(k), (int, float)) and math.isfinite(r[k])]
+        out[k] = round(float(np.mean(v)), 4) if v else None
+    st: dict[str, list] = {}
+    for r in rows:
+        for n, s in r["stage_seconds"].items():
+            st.setdefault(n, []).append(s)
+    out["stage_seconds"] = {n: round(float(np.mean(v)), 1) for n, v in st.items()}
+    return out
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", required=True, help="directory of the streets (generated when missing) and runs")
+    ap.add_argument("--profile", default="quick", help="reconstruction profile of the streets")
+    ap.add_argument("--roles", default="dev,test", help="which streets: dev, test or both")
+    ap.add_argument("--rows", default="full", help=f"comma-separated rows of {sorted(ROWS)}")
+    ap.add_argument("--default-scene", action="store_true", help="also the bundled default scene at --default-profile")
+    ap.add_argument("--default-profile", default="quick")
+    ap.add_argument("--out", default=str(REPO / "benchmarks" / "results" / "eval.json"))
+    a = ap.parse_args()
+    data = Path(a.data)
+    roles = set(a.roles.split(","))
+    rows = [r for r in a.rows.split(",") if r]
+    bad = [r for r in rows if r not in ROWS]
+    if bad:
+        ap.error(f"--rows: unknown {bad} (rows: {sorted(ROWS)})")
+    out_path = Path(a.out)
+    result = json.loads(out_path.read_text()) if out_path.is_file() else {}
+    result.update({"machine": machine(), "protocol": __doc__.split("\n\n")[1].replace("\n", " "),
+                   "streets_generated_with": {"profile": "quick", "settings": list(STREET_SETTINGS),
+                                              "streets": {n: {"role": r, "seed": s, "envmap": m, "rotation_deg": d}
+                                                          for n, (r, s, m, d) in STREETS.items()}}})
+    per = result.setdefault("per_street", {})
+    for name, (role, *_rest) in STREETS.items():
+        if role not in roles:
+            continue
+        scene = make_street(data, name)
+        for row in rows:
+            print(f"{name} ({role}) {row} at {a.profile} ...", flush=True)
+            r = run_row(scene, data / "runs" / f"{name}_{a.profile}_{row}", a.profile, row)
+            per.setdefault(row, {}).setdefault(a.profile, {})[name] = {"role": role, **r}
+            out_path.write_text(json.dumps(result, indent=1))
+    if a.default_scene:
+        for row in rows:
+            print(f"default scene {row} at {a.default_profile} ...", flush=True)
+            r = run_row(REPO / "data" / "scenes" / "default", data / "runs" / f"default_{a.default_profile}_{row}",
+                        a.default_profile, row)
+            result.setdefault("default_scene", {}).setdefault(row, {})[a.default_profile] = r
+            out_path.write_text(json.dumps(result, indent=1))
+    # the rows: means over the test streets (dev beside, as <row>_dev), per profile; the row's
+    # top-level figures are those of the benchmark profile when measured, else of the largest
+    for row, by_profile in per.items():
+        for prof, streets in by_profile.items():
+            for role in ("test", "dev"):
+                sel = {n: v for n, v in streets.items() if v["role"] == role}
+                if not sel:
+                    continue
+                key = row if role == "test" else f"{row}_dev"
+                by = result.get(key, {}).get("by_profile", {})
+                by[prof] = {**mean_row(list(sel.values())), "profile": prof, "scene_count": len(sel),
+                            "streets": sorted(sel)}
+                pick = next(p for p in ("benchmark", "paper", "quick", "tiny") if p in by)
+                result[key] = {**by[pick], "by_profile": by}
+    out_path.parent.mkdir(parents=True, exist_ok=True)
+    out_path.write_text(json.dumps(result, indent=1))
+    print(json.dumps({k: result.get(k) for k in ("full", "full_dev")}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
