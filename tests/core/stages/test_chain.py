@@ -169,3 +169,26 @@ def test_a_non_finite_loss_names_the_stage_iteration_and_term(tiny_scene, tmp_pa
                         "depth": np.full(hw + (1,), 10.0, np.float32)}
     with pytest.raises(NumericalError, match=r"volume stage: non-finite loss at iteration 1 .*albedo"):
         run_volume(b, profile_settings("tiny", "volume"), None, priors=GBufferPriors(layers, "test"), progress=False)
+
+
+def test_the_full_pipeline_learns_more_than_the_colour_only_stage(tmp_path):
+    """On a small Mitsuba street (96x64, 4 + 4 frames), the five stages with the generative
+    priors recover intrinsics and relight better than the colour-only volume stage (the
+    reconstruction a plain 3DGS would give). Measured: albedo si-PSNR 15.6 vs 14.0 dB, normal
+    error 14.9 vs 25.2 deg, relit FLIP lower by ~0.04. The relit PSNR and SSIM are not higher at
+    this size (PSNR 16.5 vs 16.7 dB); on the quick streets see benchmarks/results/eval.json."""
+    from core.evaluate import EvalSettings, evaluate_run
+    from core.synth import generate_scene, profile
+
+    scene = generate_scene(profile("tiny", width=96, height=64, num_frames=4, spp=16), tmp_path / "s",
+                           progress=False, workers=1)
+    no_priors = {k: 0.0 for k in ("lambda_normal", "lambda_albedo", "lambda_roughness", "lambda_metallic",
+                                  "lambda_prior_depth")}
+    rows = {}
+    for name, kw in (("colour", dict(stages=["volume"], overrides={"volume": no_priors})), ("full", {})):
+        run_pipeline(scene, tmp_path / name, "tiny", progress=False, iterations_scale=5.0, **kw)
+        rows[name] = evaluate_run(tmp_path / name, settings=EvalSettings(rays_per_pixel=32))["summary"]
+    full, col = rows["full"], rows["colour"]
+    assert full["albedo_si_psnr"] > col["albedo_si_psnr"] + 1.0, rows
+    assert full["normal_mae_deg"] < col["normal_mae_deg"] - 5.0, rows
+    assert full["relight_flip"] < col["relight_flip"] - 0.02, rows
