@@ -49,6 +49,8 @@ class EvalSettings:
     """Compute FLIP (flip-evaluator); off saves ~0.1 s per frame."""
     normal_offset_m: float = 0.1
     """Shadow-ray start offset along the normal, metres (:attr:`core.render.scenario.Scenario.normal_offset_m`)."""
+    shadow_t_min_m: float = 0.5
+    """Shadow rays ignore Gaussians this close, metres (:attr:`core.render.scenario.Scenario.shadow_t_min_m`)."""
 
 
 def _flip(ref: np.ndarray, test: np.ndarray) -> float:
@@ -149,7 +151,8 @@ def evaluate_run(run_dir: str | Path, bundle=None, settings: EvalSettings | None
     def pbr_clip(env_map: np.ndarray, frames) -> list[np.ndarray]:
         sc = Scenario(views=tuple(all_views[f.id] for f in frames), envmap=np.asarray(env_map, np.float32),
                       base_exposure=ex, gamma=gamma, rays_per_pixel=s.rays_per_pixel, denoiser=s.denoiser,
-                      denoiser_fallback=None, normal_offset_m=s.normal_offset_m, outputs=("png",))
+                      denoiser_fallback=None, normal_offset_m=s.normal_offset_m,
+                      shadow_t_min_m=s.shadow_t_min_m, outputs=("png",))
         with tempfile.TemporaryDirectory(prefix="brdf-eval-") as tmp:
             r = render_scenario(graph, sc, tmp)
         return list(r.result.frames)
