@@ -1,4 +1,4 @@
-"""Benchmark of the generative pass (issue 5): speed of the forward denoiser, OIDN yardstick,
+"""Benchmark of the generative pass (paper Sec. 3.2, Eq. 5): speed of the forward denoiser, OIDN yardstick,
 lighting prior, and (when trained models exist) held-out quality.
 
     python benchmarks/bench_generative.py --quick            # seconds; random weights, default scene

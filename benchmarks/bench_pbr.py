@@ -1,4 +1,4 @@
-"""Benchmark of the PBR pass (issue 4): runtime against error, agreement with Mitsuba, frame and
+"""Benchmark of the PBR pass (paper Sec. 3.2, Eq. 2-3): runtime against error, agreement with Mitsuba, frame and
 clip times, and what each skip buys.
 
 Scene (``full``): the synthetic street of ``core.synth`` (profile ``benchmark``: 320x213, seed 0,

@@ -1,4 +1,4 @@
-"""Train the generative models of issue 5 on data made here, export ONNX into ``models/``.
+"""Train the generative models (paper Sec. 3.2-3.3) on data made here, export ONNX into ``models/``.
 
 Steps (each skips what is already done, so the script resumes after an interruption):
 

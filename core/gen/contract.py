@@ -1,4 +1,4 @@
-"""The ONNX input/output contracts of the learned models (issue 5): the interface of every model.
+"""The ONNX input/output contracts of the learned models (paper Sec. 3.2-3.3): the interface of every model.
 
 A model file is usable by this project when its graph inputs and outputs match one of the
 contracts below (names, ranks, dtypes, and every dimension the contract fixes) and its ONNX

@@ -1,5 +1,5 @@
 """Denoiser backends of the rendering pipeline, selectable per render: ``none``, ``oidn``,
-``diffusion`` (issue 5, item 5).
+``diffusion`` (paper Sec. 3.2, Eq. 5).
 
     res = denoise(frames, albedo, normal, backend="diffusion", fallback="oidn",
                   gbuffer={"depth": d, "roughness": r, "metallic": m}, cam_to_world=poses, env=env)

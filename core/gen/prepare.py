@@ -1,4 +1,4 @@
-"""Training data of the generative models (issue 5): synthetic scenes and the PBR renders of
+"""Training data of the generative models (paper Sec. 3.2-3.3): synthetic scenes and the PBR renders of
 imperfect Gaussian scenes that the forward model learns to clean.
 
 For a synthetic bundle (``core.synth``; its ``bundle.json`` records the generator config), the

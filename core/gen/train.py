@@ -1,5 +1,5 @@
 """Training of the forward and inverse EDM denoisers on CPU, with checkpoints, ONNX export and a
-model card (issue 5, item 4).
+model card (reproducible training, models/README.md).
 
     res = train_model("forward_denoiser", ["scenes/s1", "scenes/s2"], "runs/fwd", steps=20000,
                       settings=TrainSettings(data=DataSettings(forward_source="pbr",

@@ -1,4 +1,4 @@
-"""The physically based rendering pass (issue 4): environment light, the paper's Cook-Torrance
+"""The physically based rendering pass (paper Sec. 3.2, Eq. 2-3): environment light, the paper's Cook-Torrance
 BRDF, Monte Carlo estimators with multiple importance sampling, point and spot lights, and
 shadow rays through the Gaussians.
 

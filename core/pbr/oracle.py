@@ -1,6 +1,6 @@
 """The "oracle" Gaussian scene: thin flat Gaussians placed densely on the triangles of a synthetic
 street (:mod:`core.synth.street`) with the ground-truth materials, so the PBR pass can be compared
-with Mitsuba's render of the same mesh scene (issue 4, "Agreement with an independent renderer").
+with Mitsuba's render of the same mesh scene (agreement with an independent renderer, ``benchmarks/bench_pbr.py``).
 
 Placement (world frame, metres)
     Every triangle is split at the midpoint of its longest edge until that edge is at most

@@ -1,5 +1,5 @@
 """The paper's BRDF inside Mitsuba 3, for ground truth with the same material model as the PBR
-pass (issue 4, "Agreement with an independent renderer").
+pass (paper supplement "Cook-Torrance BRDF derivation"; agreement with an independent renderer).
 
 The synthetic street's parts carry albedo / roughness / metallic. :mod:`core.synth.mitsuba_backend`
 renders them with Mitsuba's ``principled`` BSDF (Disney-style diffuse with retro-reflection,

@@ -1,4 +1,4 @@
-"""ONNX contract, loader and parity (issue 5: drop-in models, clear load errors, 1e-4 parity)."""
+"""ONNX contract, loader and parity (drop-in models, clear load errors, 1e-4 parity)."""
 
 from __future__ import annotations
 
