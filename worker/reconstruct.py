@@ -14,7 +14,6 @@ its own RQ job, run from the same description the CLI uses. No stage logic lives
 from __future__ import annotations
 
 import json
-import shutil
 from pathlib import Path
 
 from sqlalchemy import select
@@ -140,10 +139,6 @@ def needs_reconstruction(session, scene_id: str, tenant: str) -> str | None:
         return (f"scene {scene_id} has no finished reconstruction: run POST /scenes/{scene_id}/reconstruct "
                 "and wait for it to finish")
     return None
-
-
-def cleanup_run(ctx: JobContext, job_id: str) -> None:
-    shutil.rmtree(run_dir_path(ctx, job_id), ignore_errors=True)
 
 
 def _register() -> None:

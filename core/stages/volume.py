@@ -557,21 +557,16 @@ def _cfg_dict(cfg: VolumeSettings) -> dict:
     return json.loads(json.dumps(asdict(cfg)))
 
 
-def _skips(bundle, priors, priors_in_loss: bool) -> tuple[list[str], bool]:
-    """What this scene does not have and what the stage does instead (for the summary), and
-    whether the initialisation must come from the depth prior (no LiDAR)."""
-    m = bundle.manifest
-    out = []
-    no_lidar = not m.lidar
+def _skips(bundle, stage: str, priors) -> tuple[list[str], bool]:
+    """What this scene does not have (:func:`core.stages.chain.scene_skips`) plus how the
+    Gaussians start without LiDAR, and whether they must start from the depth prior."""
+    from core.stages.chain import scene_skips
+
+    out = scene_skips(bundle, stage)
+    no_lidar = not bundle.manifest.lidar
     if no_lidar:
-        out.append("LiDAR depth term and LiDAR initialisation: the bundle has no LiDAR; Gaussians start from the "
-                   "inverse model's depth prior" if priors is not None else
-                   "LiDAR: the bundle has no LiDAR and no depth prior is available")
-    if not any(f.sky_mask for f in m.frames):
-        out.append("sky masks: the bundle has no sky masks; the opacity term uses the prior's sky (no surface) instead"
-                   if priors_in_loss else "opacity term: the bundle has no sky masks")
-    if not m.objects:
-        out.append("object nodes: the bundle has no tracked objects (background only)")
+        out.append("LiDAR initialisation: Gaussians start from the inverse model's depth prior" if priors is not None
+                   else "LiDAR initialisation: no depth prior is available either")
     return out, no_lidar
 
 
@@ -590,7 +585,7 @@ def run_stage(ctx) -> dict:
     priors, source = (None, None)
     if wants_priors or not b.manifest.lidar:
         priors, source = ctx.run.latest_priors(b, ctx.name, threads=cfg.threads)
-    skipped, no_lidar = _skips(b, priors, wants_priors and priors is not None)
+    skipped, no_lidar = _skips(b, ctx.name, priors)
     init_dir = None
     if cfg.init_from_graph:
         found = ctx.run.latest_graph_dir(before=ctx.name)

@@ -16,42 +16,14 @@ from pathlib import Path
 import numpy as np
 
 from core.bundle import BundleWriter, Camera
-from core.errors import ConfigError
+from core.io.hdri import HDRI_DIR, column_shift, load_hdri, resolve_hdri, rotate_equirect  # noqa: F401
 from core.synth.config import SynthConfig
 from core.synth.street import EGO_LANE_Y, make_street
 
-#: Where the bundled real HDRIs live (CC0, see data/hdri/README.md).
-HDRI_DIR = Path(__file__).resolve().parents[2] / "data" / "hdri"
-
-
-def resolve_envmap(name_or_path: str) -> Path:
-    """A bundled HDRI name (``city``) or a path to an .exr/.hdr file."""
-    p = Path(name_or_path)
-    if p.suffix.lower() in (".exr", ".hdr"):
-        if not p.is_file():
-            raise ConfigError(f"envmap: file not found: {p}")
-        return p
-    cand = HDRI_DIR / f"{name_or_path}.exr"
-    if not cand.is_file():
-        known = sorted(q.stem for q in HDRI_DIR.glob("*.exr"))
-        raise ConfigError(f"envmap: unknown environment map {name_or_path!r} (bundled: {known})")
-    return cand
-
-
-def _columns_shift(env: np.ndarray, degrees: float) -> int:
-    return int(round(degrees / 360.0 * env.shape[1])) % env.shape[1]
-
-
-def rotate_envmap(env: np.ndarray, degrees: float) -> np.ndarray:
-    """Rotate an equirect map about +z by ``degrees`` (counter-clockwise seen from above), rounded
-    to whole columns so the result is exact: a feature at azimuth phi moves to phi + degrees."""
-    return np.roll(env, -_columns_shift(env, degrees), axis=1)
-
-
-def load_envmap(name_or_path: str, rotation_deg: float = 0.0) -> np.ndarray:
-    from core.io.envmap_file import read_envmap
-
-    return rotate_envmap(read_envmap(resolve_envmap(name_or_path)), rotation_deg)
+# The bundled HDRI library lives in core.io.hdri; these names are kept for the generator's callers.
+resolve_envmap = resolve_hdri
+rotate_envmap = rotate_equirect
+load_envmap = load_hdri
 
 
 def ego_positions(cfg: SynthConfig) -> np.ndarray:
@@ -201,7 +173,7 @@ def generate_scene(cfg: SynthConfig, out_dir: str | Path, *, name: str | None = 
         for car in street.cars:
             w.add_object(car.id, "car", car.size, car.poses)
         env_name_train = resolve_envmap(cfg.envmap).stem
-        if _columns_shift(env_train, cfg.envmap_rotation_deg) == 0:  # unrotated: copy the file
+        if column_shift(env_train, cfg.envmap_rotation_deg) == 0:  # unrotated: copy the file
             w.set_ground_truth_envmap(None, env_name_train, 0.0, envmap_file=resolve_envmap(cfg.envmap))
         else:
             w.set_ground_truth_envmap(env_train, env_name_train, cfg.envmap_rotation_deg)
