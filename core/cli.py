@@ -1,7 +1,7 @@
 """``brdf``: the command-line entry point of the BRDFusion library (no server needed).
 
-Subcommands: generate, validate, import, render, reconstruct, relight, night, evaluate, info, pack,
-unpack. The installed ``brdf`` command
+Subcommands: generate, validate, import, render, reconstruct, relight, night, evaluate, info,
+export-object, pack, unpack. The installed ``brdf`` command
 is :func:`services.cli.main`, which adds the rendering service's serve, worker, up and keys through
 ``extensions`` (so ``core`` imports no server code; ``python -m core`` has the library's commands
 only).
@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 import tempfile
 from pathlib import Path
@@ -50,7 +51,17 @@ def cmd_generate(a: argparse.Namespace) -> int:
         overrides["seed"] = a.seed
     if a.envmap:
         overrides["envmap"] = a.envmap
-    cfg = profile(a.profile, **overrides)
+    if a.randomise or a.split:
+        from core.synth.randomise import spec_config
+        from core.synth.splits import split_spec
+
+        index = overrides.pop("seed", 0)
+        split = a.split or "train"
+        spec = split_spec(split, index)
+        cfg = spec_config(spec, profile(a.profile), **overrides)
+        a.name = a.name or f"{split}_{index:06d}"
+    else:
+        cfg = profile(a.profile, **overrides)
     root = generate_scene(cfg, a.out, name=a.name, overwrite=a.overwrite, progress=not a.quiet,
                           workers=a.workers)
     print(f"wrote scene bundle: {root}")
@@ -124,8 +135,11 @@ def _stage_line(name: str, s: dict) -> str:
     for k, label in (("test_psnr", "held-out PSNR {:.2f} dB"), ("gaussians", "{} Gaussians"),
                      ("photometric_psnr_fitted", "PBR photometric PSNR {:.2f} dB"),
                      ("sky_floaters_pruned", "{} sky floaters pruned")):
-        if isinstance(s.get(k), (int, float)):
-            bits.append(label.format(s[k]))
+        v = s.get(k)
+        if isinstance(v, float) and not math.isfinite(v):  # e.g. no test frames: never print "nan dB"
+            bits.append(f"{label.split(' {')[0].replace('{} ', '')}: not measured")
+        elif isinstance(v, (int, float)):
+            bits.append(label.format(v))
     for sk in s.get("skipped") or []:
         bits.append(f"skipped: {sk}")
     return "  " + "; ".join(bits)
@@ -160,7 +174,15 @@ def _scenario_common(a, bundle):
     from core.relight import ObjectEdit
     from core.render.scenario import LightSpec, load_path_json, views_from_frames
 
-    if a.path in (None, "captured"):
+    edited = any(x is not None for x in (a.lateral_shift, a.height_shift, a.time_start, a.time_stop, a.path_fps))
+    if a.path in (None, "captured") and edited:
+        from core.render.scenario import views_from_capture
+
+        views = views_from_capture(bundle, split=a.split, lateral_shift_m=a.lateral_shift or 0.0,
+                                   height_shift_m=a.height_shift or 0.0, start_s=a.time_start, stop_s=a.time_stop,
+                                   fps=a.path_fps, what="--path captured")
+        fps = a.path_fps or a.fps
+    elif a.path in (None, "captured"):
         views, fps = views_from_frames(bundle, a.split, a.start, a.stop, a.step), a.fps
     else:
         views, fps = load_path_json(bundle, a.path)
@@ -180,8 +202,20 @@ def _scenario_common(a, bundle):
         for i, e in enumerate(items):
             if not isinstance(e, dict) or "op" not in e or "object_id" not in e:
                 raise CoreError(f"--edits[{i}]: needs op and object_id")
+            known = {"op", "object_id", "source_object_id", "offset_m", "yaw_deg", "speed", "lateral_offset_m", "poses",
+                     "asset", "crop_to_box", "solid"}
+            bad = sorted(set(e) - known)
+            if bad:
+                raise CoreError(f"--edits[{i}]: unknown field(s) {bad} (fields: {sorted(known)})")
+            try:
+                poses = tuple((int(x["time_index"]), x["obj_to_world"]) for x in e.get("poses", []))
+            except (TypeError, KeyError, ValueError):
+                raise CoreError(f"--edits[{i}].poses: expected [{{time_index, obj_to_world}}, ...]") from None
             edits.append(ObjectEdit(e["op"], e["object_id"], e.get("source_object_id"),
-                                    tuple(e.get("offset_m", (0.0, 0.0, 0.0))), float(e.get("yaw_deg", 0.0))))
+                                    tuple(e.get("offset_m", (0.0, 0.0, 0.0))), float(e.get("yaw_deg", 0.0)),
+                                    speed=float(e.get("speed", 1.0)), lateral_offset_m=float(e.get("lateral_offset_m", 0.0)),
+                                    poses=poses, asset=e.get("asset"), crop=bool(e.get("crop_to_box", True)),
+                                    solid=bool(e.get("solid", True))))
     return views, fps, lights, edits
 
 
@@ -197,7 +231,11 @@ def _render_and_report(run, a, scenario, kind: str) -> int:
     from core.render.scenario import render_scenario
     from tqdm import tqdm
 
+    from core.bundle import open_bundle
+    from core.render.objects import attach_sizes
+
     graph, _sky, stage = run.load_scene()
+    attach_sizes(graph, open_bundle(run.scene_path(), validate=False).manifest)
     out = Path(a.out)
     bar = tqdm(total=len(scenario.views), desc=kind, unit="frame", disable=a.quiet)
     try:
@@ -205,9 +243,16 @@ def _render_and_report(run, a, scenario, kind: str) -> int:
     finally:
         bar.close()
     r = res.result
+    mt = res.metrics
     print(f"{kind}: {res.frames} frame(s) of the {stage} reconstruction, {res.lights} light(s), "
           f"{r.seconds_per_frame:.2f} s per frame, denoiser {r.denoiser}"
           + (f" ({r.denoiser_note})" if r.denoiser_note else ""))
+    print(f"  exposure: {mt['exposure']} EV {mt['exposure_ev']:+.2f}"
+          + (f" (limited by {mt['exposure_limited_by']})" if mt.get("exposure_limited_by") else ""))
+    if scenario.street_lights:
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "street_lights.json").write_text(json.dumps({"street_lights": mt["street_lights"]}, indent=1))
+        print(f"  street lights: {len(mt['street_lights'])} at {out / 'street_lights.json'}")
     print(f"  EXR (HDR beauty + G-buffers): {out / 'frames'}")
     if r.video:
         print(f"  video: {r.video}")
@@ -226,9 +271,19 @@ def cmd_relight(a: argparse.Namespace) -> int:
     views, fps, lights, edits = _scenario_common(a, b)
     m = b.manifest
     sc = Scenario(tuple(views), load_hdri(a.envmap), rotation_deg=a.rotation, lights=tuple(lights), edits=tuple(edits),
-                  exposure_ev=a.exposure, base_exposure=m.ldr_exposure, gamma=m.ldr_gamma, rays_per_pixel=a.rays,
+                  exposure_ev=_ev(a.exposure), base_exposure=m.ldr_exposure, gamma=m.ldr_gamma, rays_per_pixel=a.rays,
                   shadows=not a.no_shadows, denoiser=a.denoiser, fps=fps)
     return _render_and_report(run, a, sc, "relight")
+
+
+def _ev(v: str | None) -> float | None:
+    """``--exposure``: ``auto`` (None) or stops."""
+    if v is None or str(v).lower() == "auto":
+        return None
+    try:
+        return float(v)
+    except ValueError:
+        raise CoreError(f"--exposure: expected 'auto' or a number of stops, got {v!r}") from None
 
 
 def cmd_night(a: argparse.Namespace) -> int:
@@ -239,8 +294,20 @@ def cmd_night(a: argparse.Namespace) -> int:
     b = _open_any(str(run.scene_path()))
     views, fps, lights, edits = _scenario_common(a, b)
     m = b.manifest
+    positions = None
+    if a.street_light_positions:
+        spec = _read_json(a.street_light_positions, "--street-light-positions")
+        positions = spec.get("positions", spec) if isinstance(spec, dict) else spec
+        if not isinstance(positions, list):
+            raise CoreError(f"--street-light-positions {a.street_light_positions}: expected a list of [x, y] / [x, y, z]")
+    off = tuple(x for x in (a.lights_off or "").split(",") if x)
     sc, note = night_scenario(run, sky_scale=a.sky_scale, headlights=not a.no_headlights,
-                              headlight_intensity=a.headlight_intensity, exposure_ev=a.exposure, views=tuple(views),
+                              headlight_intensity=a.headlight_intensity, tail_lights=not a.no_tail_lights,
+                              vehicle_lights_off=off, exposure_ev=_ev(a.exposure),
+                              street_lights=a.street_lights != "none",
+                              street_light_placement=a.street_lights if a.street_lights != "none" else "detect",
+                              street_light_positions=positions, street_light_intensity=a.street_light_intensity,
+                              street_light_spacing_m=a.street_light_spacing, bundle=b, views=tuple(views),
                               lights=tuple(lights), edits=tuple(edits), base_exposure=m.ldr_exposure,
                               gamma=m.ldr_gamma, rays_per_pixel=a.rays, denoiser=a.denoiser, fps=fps)
     if not a.quiet:
@@ -281,8 +348,37 @@ def cmd_demo(a: argparse.Namespace) -> int:
 
 
 def cmd_info(a: argparse.Namespace) -> int:
-    b = _open_any(a.path)
+    from core.render.objects import describe_objects
+
+    p = Path(a.path)
+    nodes = None
+    if p.is_dir() and (p / "run.json").is_file():  # a reconstruction run: its scene and its nodes
+        from core.stages.chain import RunDir
+
+        run = RunDir(p)
+        b = _open_any(str(run.scene_path()), validate=False)
+        found = run.latest_graph_dir()
+        if found is not None:
+            graph, _sky, stage = run.load_scene()
+            nodes = [n.name for n in graph.nodes]
+            print(f"reconstruction {p}: profile {run.profile}, stages {run.done_stages()} (scene graph of {stage}: "
+                  f"{graph.background.num} background Gaussians, {len(nodes)} object node(s))")
+    else:
+        b = _open_any(a.path)
     m = b.manifest
+    objects = describe_objects(m, nodes)
+    lamps = []
+    if m.lidar:
+        import numpy as np
+
+        from core.render.streetlights import detect_poles
+
+        frames = sorted(b.frames("train") or b.frames(None), key=lambda f: f.time_index)
+        path = np.array([np.asarray(f.cam_to_world)[:3, 3] for f in frames]) if frames else None
+        lamps = [lp.as_dict() for lp in detect_poles(b.load_lidar(), path_xyz=path)]
+    if a.json:
+        print(json.dumps({"name": m.name, "objects": objects, "street_lights": lamps}, indent=1))
+        return 0
     print(f"{m.name}: {len(m.frames)} frames ({len(m.split('train'))} train, {len(m.split('test'))} test), "
           f"{len(m.cameras)} camera(s), {len(m.times)} time steps, {len(m.lidar)} LiDAR sweeps, "
           f"{len(m.objects)} objects")
@@ -291,6 +387,31 @@ def cmd_info(a: argparse.Namespace) -> int:
     if m.ground_truth:
         print(f"  ground truth: envmap {m.ground_truth.envmap_name}; relit: "
               f"{', '.join(r.name for r in m.ground_truth.relit) or 'none'}")
+    for o in objects:
+        first, last = o["poses"][0], o["poses"][-1]
+        xyz = lambda q: "(" + ", ".join(f"{q['obj_to_world'][k][3]:.2f}" for k in range(3)) + ")"  # noqa: E731
+        extra = "" if nodes is None else ("" if o["reconstructed"] else ", not in the reconstruction")
+        print(f"  object {o['id']}: {o['class']}, box {' x '.join(f'{x:.2f}' for x in o['size'])} m, "
+              f"{'moving' if o['moving'] else 'parked'}, {len(o['poses'])} poses (t {first['time_s']:.2f} s "
+              f"{xyz(first)} -> t {last['time_s']:.2f} s {xyz(last)}){extra}")
+    for lp in lamps:
+        print(f"  street light (detected in the LiDAR): head {lp['position']}, pole at {lp['pole_base']}")
+    print("  (--json: every pose of every object)")
+    return 0
+
+
+def cmd_export_object(a: argparse.Namespace) -> int:
+    from core.bundle import open_bundle
+    from core.render.objects import attach_sizes, export_asset
+    from core.stages.chain import RunDir
+
+    run = RunDir(a.run)
+    graph, _sky, stage = run.load_scene()
+    attach_sizes(graph, open_bundle(run.scene_path(), validate=False).manifest)
+    path = export_asset(graph, a.object_id, a.out, crop=not a.no_crop)
+    node = graph.node(a.object_id)
+    print(f"wrote object asset {path} ({node.cls} {a.object_id!r} of the {stage} reconstruction); insert it with an "
+          f'edit {{"op": "insert", "object_id": "new_id", "asset": "{path}", "offset_m": [x, y, z], "yaw_deg": 0}}')
     return 0
 
 
@@ -321,6 +442,11 @@ def build_parser(extensions=()) -> argparse.ArgumentParser:
     g.add_argument("--envmap", default=None, help="bundled HDRI name (city, sunset, ...) or a file")
     g.add_argument("--name", default=None)
     g.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a SynthConfig field")
+    g.add_argument("--randomise", action="store_true",
+                   help="a randomised street (core.synth.randomise) of --split, scene number --seed; "
+                        "the profile gives frames, samples and LiDAR")
+    g.add_argument("--split", default=None, help="train | val | test_id | test_ood_<axis> "
+                   "(core.synth.splits; implies --randomise, default train)")
     g.add_argument("--workers", type=int, default=None, help="render processes (default 2)")
     g.add_argument("--overwrite", action="store_true")
     g.add_argument("--quiet", action="store_true")
@@ -364,7 +490,8 @@ def build_parser(extensions=()) -> argparse.ArgumentParser:
     def shot_args(x):
         x.add_argument("run", help="a reconstruction run directory (brdf reconstruct --out)")
         x.add_argument("--out", required=True, help="output directory (EXR frames, MP4, preview PNG)")
-        x.add_argument("--exposure", type=float, default=0.0, help="exposure in EV on top of the capture's")
+        x.add_argument("--exposure", default="auto", help="'auto' (default: one exposure for the clip from its HDR "
+                       "frames) or stops on top of the capture's exposure")
         x.add_argument("--lights", default=None, help="JSON file: a list of lights (kind point|spot, position, "
                        "intensity in candela, direction, color, cone_inner_deg, cone_outer_deg, attach_to)")
         x.add_argument("--edits", default=None, help="JSON file: a list of object edits (op insert|move|remove, "
@@ -376,6 +503,13 @@ def build_parser(extensions=()) -> argparse.ArgumentParser:
         x.add_argument("--stop", type=int, default=None)
         x.add_argument("--step", type=int, default=1)
         x.add_argument("--fps", type=float, default=10.0)
+        x.add_argument("--lateral-shift", type=float, default=None, help="--path captured: metres to the left "
+                       "(negative: right), a lane change")
+        x.add_argument("--height-shift", type=float, default=None, help="--path captured: metres up")
+        x.add_argument("--time-start", type=float, default=None, help="--path captured: from this scene time (s)")
+        x.add_argument("--time-stop", type=float, default=None, help="--path captured: to this scene time (s)")
+        x.add_argument("--path-fps", type=float, default=None, help="--path captured: resample the path at this "
+                       "frame rate (poses interpolated)")
         x.add_argument("--rays", type=int, default=64, help="PBR rays per pixel")
         x.add_argument("--denoiser", default="oidn", choices=["none", "oidn", "diffusion"])
         x.add_argument("--quiet", action="store_true")
@@ -392,7 +526,16 @@ def build_parser(extensions=()) -> argparse.ArgumentParser:
     nt.add_argument("--sky-scale", type=float, default=0.02, help="multiplier on the recovered sky")
     nt.add_argument("--no-headlights", action="store_true")
     nt.add_argument("--headlight-intensity", type=float, default=3000.0, help="candela per headlight")
-    nt.set_defaults(fn=cmd_night, exposure=2.0)
+    nt.add_argument("--no-tail-lights", action="store_true")
+    nt.add_argument("--lights-off", default=None, help="comma-separated object ids whose vehicle lights are off")
+    nt.add_argument("--street-lights", default="detect", choices=["detect", "spacing", "none"],
+                    help="detect: on the poles found in the LiDAR (or the Gaussians), rows by spacing when none; "
+                         "spacing: rows along both sides of the road; none")
+    nt.add_argument("--street-light-positions", default=None, help="JSON file: a list of [x, y] or [x, y, z] lamp "
+                    "positions (instead of --street-lights)")
+    nt.add_argument("--street-light-spacing", type=float, default=None, help="metres between lamps (default 25)")
+    nt.add_argument("--street-light-intensity", type=float, default=None, help="candela per lamp (default 2000)")
+    nt.set_defaults(fn=cmd_night)
 
     ev = sub.add_parser("evaluate", help="measure a reconstruction against a bundle's ground truth")
     ev.add_argument("run", help="a reconstruction run directory")
@@ -414,9 +557,19 @@ def build_parser(extensions=()) -> argparse.ArgumentParser:
     dm.add_argument("--quiet", action="store_true")
     dm.set_defaults(fn=cmd_demo)
 
-    n = sub.add_parser("info", help="summarise a scene bundle")
-    n.add_argument("path")
+    n = sub.add_parser("info", help="summarise a scene bundle or a reconstruction run: cameras, objects (class, box, "
+                       "parked/moving, poses), street lights detected in the LiDAR")
+    n.add_argument("path", help="a bundle (directory or archive) or a run directory")
+    n.add_argument("--json", action="store_true", help="print the objects (every pose) and lamps as JSON")
     n.set_defaults(fn=cmd_info)
+
+    xo = sub.add_parser("export-object", help="write a reconstruction's object as an asset (Gaussians, materials, "
+                        "box) to insert into another scene")
+    xo.add_argument("run", help="a reconstruction run directory")
+    xo.add_argument("object_id")
+    xo.add_argument("--out", required=True, help="asset file (.pt)")
+    xo.add_argument("--no-crop", action="store_true", help="keep the Gaussians outside the object's box")
+    xo.set_defaults(fn=cmd_export_object)
 
     k = sub.add_parser("pack", help="pack a bundle directory as .zip or .tar.gz")
     k.add_argument("path")

@@ -24,6 +24,7 @@ import numpy as np
 import torch
 
 from core.errors import ConfigError
+from core.numerics import OPACITY_EPS
 
 
 @dataclass(frozen=True)
@@ -86,7 +87,7 @@ def sheet(graph, sky, bundle, frame, relit_ldr: np.ndarray | None, gt_ldr: np.nd
                                 c.cy, c.width, c.height, settings=RasterSettings(threads=threads))
         dirs = torch.from_numpy(camera_ray_directions(frame.cam_to_world, c.fx, c.fy, c.cx, c.cy, c.width, c.height))
         nvs = (r.color + (1 - r.opacity) * sky(dirs.to(g.dtype)).to(r.color.dtype)).numpy()
-        inv = (1.0 / r.opacity.clamp_min(1e-3)).numpy()
+        inv = (1.0 / r.opacity.clamp_min(OPACITY_EPS)).numpy()
         n = r.normal.numpy()
         n = n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-6)
     panels = [("input", bundle.load_image(frame)), ("novel view", nvs), ("albedo", r.albedo.numpy() * inv),

@@ -30,6 +30,7 @@ import numpy as np
 import torch
 
 from core.errors import ConfigError
+from core.numerics import OPACITY_EPS
 
 
 @dataclass(frozen=True)
@@ -127,7 +128,7 @@ def evaluate_run(run_dir: str | Path, bundle=None, settings: EvalSettings | None
             nvs.append(_img_metrics(rgb.float().numpy(), img, s.flip))
             gtl = b.load_ground_truth(f)
             mask = torch.from_numpy(gtl["depth"].reshape(c.height, c.width) > 0)
-            inv = 1.0 / r.opacity.clamp_min(1e-3)
+            inv = 1.0 / r.opacity.clamp_min(OPACITY_EPS)
             row = {"albedo_si_psnr": float(si_psnr((r.albedo * inv).clamp(0, 1).float()[None],
                                                    torch.from_numpy(gtl["albedo"])[None], mask[None])),
                    "normal_mae_deg": float(angular_error_deg(r.normal.float()[None], torch.from_numpy(gtl["normal"])[None],

@@ -307,25 +307,19 @@ class Gaussians:
         for k, v in self.tensors().items():
             payload[k] = v.detach().to("cpu").contiguous()
         path = Path(path)
-        tmp = path.with_name(path.name + ".tmp")
-        torch.save(payload, tmp)
-        tmp.replace(path)
+        from core.io.atomic import atomic_output
+
+        with atomic_output(path) as tmp:
+            torch.save(payload, tmp)
 
     @classmethod
     def load(cls, path: str | Path) -> "Gaussians":
         """Read a file written by :meth:`save`; FormatError names the file and field if it is bad."""
+        from core.io.torchfile import read_torch_file
+
         path = Path(path)
-        try:
-            payload = torch.load(path, map_location="cpu", weights_only=True)
-        except FileNotFoundError:
-            raise
-        except Exception as exc:  # noqa: BLE001 - any unpickling failure means a bad file
-            raise FormatError(f"{path}: not a readable Gaussians file ({exc})") from exc
-        if not isinstance(payload, dict) or payload.get("format") != FORMAT_NAME:
-            raise FormatError(f"{path} [format]: expected {FORMAT_NAME!r}")
-        version = payload.get("version")
-        if not isinstance(version, int) or version > FORMAT_VERSION or version < 1:
-            raise FormatError(f"{path} [version]: unsupported version {version!r}")
+        payload = read_torch_file(path, FORMAT_NAME, range(1, FORMAT_VERSION + 1), "Gaussians file", pass_missing=True)
+        version = payload["version"]
         kwargs = {}
         for k in _WIDTHS:
             if k == "view_dep" and version == 1:

@@ -19,6 +19,9 @@ EPS_NORM_SQ = 1e-12
 EPS_PDF = 1e-8
 #: Guard for sqrt of quantities that are >= 0 in exact arithmetic but may round slightly below.
 EPS_SQRT = 1e-12
+#: Floor of an accumulated opacity when a G-buffer layer is divided by it (the per-surface value
+#: of an expected-value layer): below 1e-3 a pixel is sky and its quotient would be noise.
+OPACITY_EPS = 1e-3
 #: Clamp for acos/asin inputs: keep away from +-1 so the derivative stays finite.
 ACOS_CLAMP = 1.0 - 1e-7
 
@@ -120,6 +123,11 @@ LIGHT_DIST_SQ_MIN = 1e-4
 #: Largest ``intensity * max(color)`` of a local light (W/sr-like units): with LIGHT_DIST_SQ_MIN
 #: and the GGX peak above, the contribution stays below ~1e25, inside float32.
 LIGHT_INTENSITY_MAX = 1e15
+#: Largest radiance an environment map may hold (a clear sun is ~1e5-1e9 in linear HDR units).
+#: float32 ends at 3.4e38: a bilinear lookup of a texel near it rounds to Inf, and so does
+#: exp(log(x)) of the log-space parameterisation; at 1e15, times the GGX peak (~3.2e5) and the
+#: samples of a frame (~1e7), sums stay below 1e28, far inside float32.
+ENV_RADIANCE_MAX = 1e15
 #: Floor of an environment map's radiance in its log-space parameterisation: log(0) is -inf,
 #: so zero pixels are stored as log(1e-8) (1e-8 is far below any visible radiance).
 LOG_RADIANCE_FLOOR = 1e-8

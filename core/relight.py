@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Sequence
 
@@ -39,15 +39,32 @@ class View:
 
 @dataclass(frozen=True)
 class ObjectEdit:
-    """Insert a copy of a node, move or remove a node. ``offset_m``: world translation (metres)
-    applied after the node's own pose; ``yaw_deg``: rotation about the node's up axis (+z of the
-    node frame), degrees."""
+    """Insert, move or remove an object (a scene-graph node); removal hides it in every frame.
+
+    ``offset_m``: world translation (metres) applied after the node's own pose; ``yaw_deg``:
+    rotation about the node's up axis (+z of the node frame), degrees. Trajectory edits (move and
+    insert): ``speed`` (the object covers its path this many times as fast, 0 stops it at its
+    first pose), ``lateral_offset_m`` (along the object's own left axis, a lane offset), ``poses``
+    (``((time_index, obj_to_world 4x4), ...)``: an explicit trajectory replacing the node's).
+    Insert copies ``source_object_id`` or loads ``asset`` (a file of
+    :func:`core.render.objects.export_asset`; placed with ``poses``, or at world position
+    ``offset_m`` turned by ``yaw_deg`` at every time). ``crop``: the moved or inserted node keeps
+    only its Gaussians inside its box (:func:`core.render.objects.crop_to_box`), so floaters
+    do not travel with it. ``solid``: its inside is filled with opaque Gaussians
+    (:func:`core.render.objects.solid_filler`), so it casts a solid shadow, not the faint one of
+    a half-transparent shell."""
 
     op: str
     object_id: str
     source_object_id: str | None = None
     offset_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
     yaw_deg: float = 0.0
+    speed: float = 1.0
+    lateral_offset_m: float = 0.0
+    poses: tuple = ()
+    asset: str | None = None
+    crop: bool = True
+    solid: bool = True
 
 
 @dataclass
@@ -60,6 +77,10 @@ class RelightResult:
     seconds_per_frame: float = 0.0
     denoiser: str = "none"
     denoiser_note: str | None = None
+    exposure: float = 1.0
+    """The exposure of the LDR clip (the automatic one when ``auto_exposure`` was given)."""
+    exposure_note: str | None = None
+    """How the automatic exposure was chosen (``key``, ``highlights`` or ``clamp``), else None."""
     frames: np.ndarray | None = None
     """[T, H, W, 3] the denoised LDR clip in [0, 1] (when mp4 or png was asked for)."""
 
@@ -74,47 +95,105 @@ def _edit_pose(poses: torch.Tensor, offset, yaw_deg: float) -> torch.Tensor:
     return out
 
 
+def _explicit_poses(e: ObjectEdit, n_times: int, what: str) -> tuple[torch.Tensor, torch.Tensor]:
+    ti, mats = [], []
+    for k, item in enumerate(e.poses):
+        try:
+            t, m = item
+            m = np.asarray(m, np.float64)
+        except (TypeError, ValueError) as exc:
+            raise ConfigError(f"{what}.poses[{k}]: expected (time_index, 4x4 obj_to_world)") from exc
+        if not isinstance(t, (int, np.integer)) or not 0 <= int(t) < n_times:
+            raise ConfigError(f"{what}.poses[{k}].time_index: must be an int in [0, {n_times - 1}], got {t!r}")
+        from core.conventions import is_rigid
+
+        if m.shape != (4, 4) or not np.isfinite(m).all() or not is_rigid(m):
+            raise ConfigError(f"{what}.poses[{k}].obj_to_world: expected a finite rigid 4x4 transform")
+        ti.append(int(t))
+        mats.append(m)
+    if len(set(ti)) != len(ti):
+        raise ConfigError(f"{what}.poses: a time index appears twice")
+    return torch.tensor(ti), torch.from_numpy(np.stack(mats))
+
+
+def _trajectory(e: ObjectEdit, poses: torch.Tensor, time_indices: torch.Tensor, times, what: str):
+    from core.render.objects import retime_poses
+
+    try:
+        out = retime_poses(poses, time_indices, times, speed=e.speed, lateral_offset_m=e.lateral_offset_m)
+    except ConfigError as exc:
+        raise ConfigError(f"{what}.{exc}") from None
+    return _edit_pose(out, e.offset_m, e.yaw_deg)
+
+
 def apply_edits(graph, edits: Sequence[ObjectEdit], what: str = "edits"):
     """A new :class:`core.scene_graph.SceneGraph` with ``edits`` applied in order (the input is
     not modified). Raises ConfigError naming the edit (``<what>[i]``) that refers to an unknown
     node or inserts an existing id."""
+    from core.render.objects import load_asset, object_box, prepare_edited
     from core.scene_graph import RigidNode, SceneGraph
 
     nodes = list(graph.nodes)
+    n_times = len(graph.times)
     for i, e in enumerate(edits):
+        w = f"{what}[{i}]"
         names = [n.name for n in nodes]
         if e.op == "remove":
             if e.object_id not in names:
-                raise ConfigError(f"{what}[{i}].object_id: no object {e.object_id!r} in the scene (objects: {names})")
+                raise ConfigError(f"{w}.object_id: no object {e.object_id!r} in the scene (objects: {names})")
             nodes = [n for n in nodes if n.name != e.object_id]
         elif e.op == "move":
             if e.object_id not in names:
-                raise ConfigError(f"{what}[{i}].object_id: no object {e.object_id!r} in the scene (objects: {names})")
-            nodes = [replace(n, poses=_edit_pose(n.poses.detach(), e.offset_m, e.yaw_deg), pose_delta_trans=None,
-                             pose_delta_rot=None) if n.name == e.object_id else n for n in nodes]
+                raise ConfigError(f"{w}.object_id: no object {e.object_id!r} in the scene (objects: {names})")
+            src = next(n for n in nodes if n.name == e.object_id)
+            ti, poses = (_explicit_poses(e, n_times, w) if e.poses else (src.time_indices.clone(), src.poses.detach()))
+            poses = _trajectory(e, poses, ti, graph.times, w)
+            g = prepare_edited(src.gaussians, object_box(src), crop=e.crop, solid=e.solid)
+            nodes = [RigidNode(src.name, src.cls, g, ti, poses, size=src.size) if n.name == e.object_id else n
+                     for n in nodes]
         elif e.op == "insert":
             if e.object_id in names:
-                raise ConfigError(f"{what}[{i}].object_id: {e.object_id!r} already exists; pick a new id")
+                raise ConfigError(f"{w}.object_id: {e.object_id!r} already exists; pick a new id")
+            if (e.asset is None) == (e.source_object_id is None):
+                raise ConfigError(f"{w}.source_object_id: give exactly one of source_object_id or asset")
+            if e.asset is not None:
+                cls, size, g = load_asset(e.asset, f"{w}.asset")
+                if e.poses:
+                    ti, poses = _explicit_poses(e, n_times, w)
+                    poses = _trajectory(e, poses, ti, graph.times, w)
+                else:
+                    ti = torch.arange(n_times)
+                    poses = _edit_pose(torch.eye(4, dtype=torch.float64).repeat(n_times, 1, 1), e.offset_m,
+                                       e.yaw_deg)
+                g = prepare_edited(g, size, crop=e.crop, solid=e.solid)
+                nodes.append(RigidNode(e.object_id, cls, g, ti, poses, size=size))
+                continue
             if e.source_object_id not in names:
-                raise ConfigError(f"{what}[{i}].source_object_id: no object {e.source_object_id!r} in the scene "
+                raise ConfigError(f"{w}.source_object_id: no object {e.source_object_id!r} in the scene "
                                   f"(objects: {names})")
             src = next(n for n in nodes if n.name == e.source_object_id)
-            nodes.append(RigidNode(e.object_id, src.cls, src.gaussians.detach(), src.time_indices.clone(),
-                                   _edit_pose(src.poses.detach(), e.offset_m, e.yaw_deg)))
+            ti, poses = (_explicit_poses(e, n_times, w) if e.poses else (src.time_indices.clone(), src.poses.detach()))
+            poses = _trajectory(e, poses, ti, graph.times, w)
+            g = prepare_edited(src.gaussians, object_box(src), crop=e.crop, solid=e.solid)
+            nodes.append(RigidNode(e.object_id, src.cls, g, ti, poses, size=src.size))
         else:
-            raise ConfigError(f"{what}[{i}].op: must be insert, move or remove, got {e.op!r}")
-    return SceneGraph(graph.background, nodes, graph.times)
+            raise ConfigError(f"{w}.op: must be insert, move or remove, got {e.op!r}")
+    edited = SceneGraph(graph.background, nodes, graph.times)
+    edited.occluders = graph.occluders  # the completed facades belong to the static scene
+    return edited
 
 
 def render_clip(scene, env: EnvironmentMap, views: Sequence[View], out_dir: str | Path, *,
                 settings: PBRSettings | None = None, lights=(), outputs: Sequence[str] = OUTPUT_KINDS,
                 denoiser: str = "none", denoiser_fallback: str | None = None, fps: float = 10.0,
-                on_frame: Callable[[int, int], None] | None = None) -> RelightResult:
+                on_frame: Callable[[int, int], None] | None = None, auto_exposure=None) -> RelightResult:
     """Render ``views`` of ``scene`` (a SceneGraph or Gaussians) lit by ``env`` and ``lights``
     with the PBR pass (reuse across the clip: static BVH once, visibility cache when
     ``settings.reuse_visibility``), denoise the LDR clip, and write the outputs (module
     docstring). ``on_frame(done, total)`` is called after each frame (progress, cancel checks).
-    Raises ConfigError for an empty view list, unknown outputs or a bad fps."""
+    ``auto_exposure`` (:class:`core.render.exposure.AutoExposure`): one exposure for the clip
+    measured on its HDR frames replaces ``settings.exposure`` for the LDR clip (the EXR keeps
+    the HDR). Raises ConfigError for an empty view list, unknown outputs or a bad fps."""
     from core.gen.denoise import denoise
     from core.io.images import write_png
     from core.io.video import write_mp4
@@ -132,7 +211,7 @@ def render_clip(scene, env: EnvironmentMap, views: Sequence[View], out_dir: str 
     (out / "frames").mkdir(parents=True, exist_ok=True)
     renderer = ClipRenderer(scene, env, s, lights=list(lights))
     res = RelightResult(denoiser=denoiser)
-    ldr, albedo, normal = [], [], []
+    ldr, albedo, normal, hdr = [], [], [], []
     extra: dict[str, list] = {"depth": [], "roughness": [], "metallic": []}
     c2w = []
     t0 = time.perf_counter()
@@ -143,6 +222,8 @@ def render_clip(scene, env: EnvironmentMap, views: Sequence[View], out_dir: str 
             write_frame_exr(p, r)
             res.exr_files.append(p)
         ldr.append(r.ldr.detach().to(torch.float32).numpy())
+        if auto_exposure is not None:
+            hdr.append(r.hdr.detach().to(torch.float32).numpy())
         albedo.append(r.gbuffers["albedo"].detach().to(torch.float32).numpy())
         normal.append(r.gbuffers["normal"].detach().to(torch.float32).numpy())
         if denoiser == "diffusion" or denoiser_fallback == "diffusion":
@@ -152,6 +233,13 @@ def render_clip(scene, env: EnvironmentMap, views: Sequence[View], out_dir: str 
         if on_frame is not None:
             on_frame(i + 1, len(views))
     res.seconds_per_frame = (time.perf_counter() - t0) / len(views)
+    res.exposure = float(s.exposure)
+    if auto_exposure is not None:
+        from core.render.exposure import auto_exposure as choose
+
+        ch = choose(hdr, auto_exposure)
+        res.exposure, res.exposure_note = ch.exposure, ch.limited_by
+        ldr = [np.clip(h * ch.exposure, 0.0, 1.0) ** (1.0 / s.gamma) for h in hdr]
     if "mp4" in outputs or "png" in outputs:
         clip = np.stack(ldr)
         kw = {}

@@ -10,7 +10,9 @@ corrections (``pose_delta_*``), so gradients reach the poses through ordinary au
 
 File format (:meth:`SceneGraph.save`): ``torch.save`` of
 ``{"format": "brdfusion.scene_graph", "version": 1, "times": [T], "background": <Gaussians dict>,
-"nodes": [{"name", "cls", "time_indices": [K], "poses": [K, 4, 4], "gaussians": <dict>}]}``.
+"nodes": [{"name", "cls", "time_indices": [K], "poses": [K, 4, 4], "gaussians": <dict>,
+"size"?: [l, w, h]}], "occluders"?: <Gaussians dict>}`` (``size``, the tracked box, and
+``occluders``, shadow-only Gaussians, are optional: older files have neither).
 """
 
 from __future__ import annotations
@@ -48,6 +50,7 @@ class RigidNode:
     poses: torch.Tensor
     pose_delta_trans: torch.Tensor | None = None  # [K, 3] metres, learnable
     pose_delta_rot: torch.Tensor | None = None  # [K, 3] rotation vectors, radians, learnable
+    size: tuple[float, float, float] | None = None  # the tracked box (l, w, h) metres, when known
     _static: bool = field(init=False, default=False)
 
     def __post_init__(self) -> None:
@@ -62,6 +65,11 @@ class RigidNode:
         self.time_indices = self.time_indices[order]
         self.poses = self.poses[order]
         self._static = bool((self.poses - self.poses[:1]).abs().max() <= STATIC_TOL)
+        if self.size is not None:
+            sz = tuple(float(x) for x in self.size)
+            if len(sz) != 3 or not all(np.isfinite(x) and x > 0 for x in sz):
+                raise ConfigError(f"size (node {self.name}): expected 3 finite lengths > 0, got {self.size!r}")
+            self.size = sz
 
     @property
     def is_static(self) -> bool:
@@ -143,6 +151,9 @@ class SceneGraph:
             if int(n.time_indices.max()) >= len(self.times) or int(n.time_indices.min()) < 0:
                 raise ConfigError(f"node {n.name}: time index outside 0..{len(self.times) - 1}")
         self._static_cache: Gaussians | None = None
+        #: Shadow-only Gaussians (world frame): cast shadows in the PBR pass, never rasterized
+        #: (:mod:`core.stages.occluders`: facades completed above the captured field of view).
+        self.occluders: Gaussians | None = None
 
     def node(self, name: str) -> RigidNode:
         for n in self.nodes:
@@ -178,6 +189,13 @@ class SceneGraph:
             self._static_cache = out
         return out
 
+    def shadow_static(self) -> Gaussians:
+        """What static shadow rays see: :meth:`_static_part` plus :attr:`occluders` (detached)."""
+        st = self._static_part().detach()
+        if self.occluders is None or self.occluders.num == 0:
+            return st
+        return Gaussians.cat([st, self.occluders.detach().to(st.dtype)])
+
     def invalidate(self) -> None:
         """Drop cached compositions (call after editing Gaussians in place)."""
         self._static_cache = None
@@ -209,7 +227,8 @@ class SceneGraph:
                 continue
             ti = sorted(obj.poses)
             poses = torch.from_numpy(np.stack([obj.poses[t] for t in ti])).to(torch.float64)
-            nodes.append(RigidNode(obj.id, obj.cls, node_gaussians[obj.id], torch.tensor(ti), poses))
+            nodes.append(RigidNode(obj.id, obj.cls, node_gaussians[obj.id], torch.tensor(ti), poses,
+                                   size=tuple(obj.size)))
         return cls(background, nodes, torch.tensor(manifest.times, dtype=torch.float64))
 
     # -- files -----------------------------------------------------------------------------------
@@ -221,28 +240,31 @@ class SceneGraph:
             "format": FORMAT_NAME, "version": FORMAT_VERSION, "times": self.times,
             "background": gd(self.background),
             "nodes": [{"name": n.name, "cls": n.cls, "time_indices": n.time_indices,
-                       "poses": n.poses, "gaussians": gd(n.gaussians)} for n in self.nodes],
+                       "poses": n.poses, "gaussians": gd(n.gaussians),
+                       **({"size": list(n.size)} if n.size is not None else {})} for n in self.nodes],
         }
+        if self.occluders is not None and self.occluders.num:
+            payload["occluders"] = gd(self.occluders)
         path = Path(path)
-        tmp = path.with_name(path.name + ".tmp")
-        torch.save(payload, tmp)
-        tmp.replace(path)
+        from core.io.atomic import atomic_output
+
+        with atomic_output(path) as tmp:
+            torch.save(payload, tmp)
 
     @classmethod
     def load(cls, path: str | Path) -> "SceneGraph":
+        from core.io.torchfile import read_torch_file
+
         path = Path(path)
-        try:
-            d = torch.load(path, map_location="cpu", weights_only=True)
-        except Exception as exc:  # noqa: BLE001 - any unpickling failure means a bad file
-            raise FormatError(f"{path}: not a readable scene graph ({exc})") from exc
-        if not isinstance(d, dict) or d.get("format") != FORMAT_NAME:
-            raise FormatError(f"{path} [format]: expected {FORMAT_NAME!r}")
-        if d.get("version") != FORMAT_VERSION:
-            raise FormatError(f"{path} [version]: unsupported version {d.get('version')!r}")
+        d = read_torch_file(path, FORMAT_NAME, (FORMAT_VERSION,), "scene graph")
         try:
             bg = Gaussians(**d["background"])
-            nodes = [RigidNode(n["name"], n["cls"], Gaussians(**n["gaussians"]), n["time_indices"], n["poses"])
+            nodes = [RigidNode(n["name"], n["cls"], Gaussians(**n["gaussians"]), n["time_indices"], n["poses"],
+                               size=tuple(n["size"]) if n.get("size") is not None else None)
                      for n in d["nodes"]]
-            return cls(bg, nodes, d["times"])
+            graph = cls(bg, nodes, d["times"])
+            if d.get("occluders") is not None:
+                graph.occluders = Gaussians(**d["occluders"])
+            return graph
         except (KeyError, TypeError) as exc:
             raise FormatError(f"{path}: missing or malformed field ({exc})") from exc

@@ -5,8 +5,10 @@ A key is ``brdf_`` + 43 random URL-safe characters (256 bits), so a plain SHA-25
 hash: there is nothing to brute-force. A client sees only its tenant's scenes, jobs and
 artifacts, and anything else answers 404 (never 403: it must not learn that the id exists). An
 operator sees every tenant and the dashboard. Keys are sent as ``Authorization: Bearer <key>``
-or ``X-API-Key: <key>``; the dashboard's session cookie is accepted for GET/HEAD only (so a
-cross-site form can never change anything).
+or ``X-API-Key: <key>``; the dashboard's session cookie is accepted for GET/HEAD, and for other
+methods only with the session's ``X-CSRF-Token`` header (:func:`csrf_token`, embedded in the
+dashboard page): a cross-site form can neither read the token nor send the header, so it can
+never change anything. The dashboard's buttons call the same routes a client does.
 """
 
 from __future__ import annotations
@@ -29,6 +31,11 @@ SCOPES = ("operator", "client")
 
 def hash_secret(secret: str) -> str:
     return hashlib.sha256(secret.encode("utf-8")).hexdigest()
+
+
+def csrf_token(session_token: str) -> str:
+    """The anti-CSRF token of a dashboard session (derived from its secret cookie)."""
+    return hashlib.sha256(b"brdf-csrf:" + session_token.encode("utf-8")).hexdigest()
 
 
 def generate_key() -> str:
@@ -128,8 +135,10 @@ class Authenticator:
             if p is None:
                 raise HTTPException(401, "invalid or revoked API key", headers={"WWW-Authenticate": "Bearer"})
             return p
-        if allow_cookie and request.method in ("GET", "HEAD"):
-            p = self.from_session(request.cookies.get(SESSION_COOKIE, ""))
+        cookie = request.cookies.get(SESSION_COOKIE, "")
+        if allow_cookie and cookie and (request.method in ("GET", "HEAD") or secrets.compare_digest(
+                request.headers.get("x-csrf-token", ""), csrf_token(cookie))):
+            p = self.from_session(cookie)
             if p is not None:
                 return p
         raise HTTPException(401, "missing API key: send 'Authorization: Bearer <key>' or 'X-API-Key: <key>'",

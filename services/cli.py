@@ -38,13 +38,14 @@ def _logging() -> None:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
 
 
-def serve(host: str, port: int, log_level: str = "info") -> int:
+def serve(host: str, port: int, log_level: str = "info", supervisor=None, settings=None) -> int:
     import uvicorn
 
     from services.app import create_app
 
     _logging()
-    app = create_app(_settings())
+    app = create_app(settings or _settings())
+    app.state.supervisor = supervisor
     uvicorn.run(app, host=host, port=port, log_level=log_level, access_log=False, timeout_keep_alive=30)
     return 0
 
@@ -89,7 +90,9 @@ def _redis_up(url: str) -> bool:
 
 def up(host: str, port: int, workers: int) -> int:
     """A gateway and ``workers`` workers on this machine against a local Redis (started here if
-    none answers and ``redis-server`` is installed). Ctrl-C stops everything it started."""
+    none answers and ``redis-server`` is installed). The workers are supervised: one that exits
+    is restarted with backoff (:mod:`services.supervisor`). Ctrl-C stops everything it started."""
+    from services.supervisor import WorkerSupervisor
     from services.auth import create_key
     from worker.db import ApiKey, get_database
 
@@ -123,9 +126,10 @@ def up(host: str, port: int, workers: int) -> int:
         key, _ = create_key(db, "operator", "operator", "created by brdf up")
     env = dict(os.environ)
     exe = [sys.executable, "-m", "services.cli"]
-    for i in range(workers):
-        # one machine: the gateway's latency comes first, so workers run at a lower CPU priority
-        children.append(subprocess.Popen(exe + ["worker", "--queues", "render,train", "--nice", "10"], env=env))
+    _logging()
+    # one machine: the gateway's latency comes first, so workers run at a lower CPU priority
+    sup = WorkerSupervisor(s, exe + ["worker", "--queues", "render,train", "--nice", "10"], workers, env)
+    sup.start()
     print(f"gateway: http://{host}:{port}   dashboard: http://{host}:{port}/dashboard   "
           f"API docs: http://{host}:{port}/docs")
     print(f"data: {s.data_dir}   database: {s.db_url.split('@')[-1]}   redis: {s.redis_url}")
@@ -134,8 +138,9 @@ def up(host: str, port: int, workers: int) -> int:
     else:
         print("operator key: already created earlier (brdf keys create --scope operator makes another)")
     try:
-        return serve(host, port)
+        return serve(host, port, supervisor=sup, settings=s)
     finally:
+        sup.stop()
         for c in reversed(children):
             if c.poll() is None:
                 c.send_signal(signal.SIGTERM)

@@ -53,8 +53,8 @@ class Registry:
             out.append(f"brdf_http_request_duration_seconds_bucket{_labels({'method': m, 'route': r, 'le': '+Inf'})} {int(h[-1])}")
             out.append(f"brdf_http_request_duration_seconds_sum{_labels({'method': m, 'route': r})} {h[-2]:.6f}")
             out.append(f"brdf_http_request_duration_seconds_count{_labels({'method': m, 'route': r})} {int(h[-1])}")
-        for name, help_, samples in gauges:
-            out += [f"# HELP {name} {help_}", f"# TYPE {name} gauge"]
+        for name, help_, samples, *kind in gauges:
+            out += [f"# HELP {name} {help_}", f"# TYPE {name} {kind[0] if kind else 'gauge'}"]
             for labels, v in samples:
                 out.append(f"{name}{_labels(labels)} {v:g}")
         return "\n".join(out) + "\n"

@@ -17,7 +17,7 @@ from typing import Any, Iterator
 
 from sqlalchemy import (
     JSON, Boolean, DateTime, Float, ForeignKey, Integer, String, Text, TypeDecorator, UniqueConstraint,
-    create_engine, event, select,
+    create_engine, event, select, update,
 )
 from sqlalchemy.engine import Engine
 from sqlalchemy.orm import DeclarativeBase, Mapped, Session, mapped_column, relationship, sessionmaker
@@ -150,6 +150,65 @@ class JobStage(Base):
     started_at: Mapped[datetime | None] = mapped_column(default=None)
     finished_at: Mapped[datetime | None] = mapped_column(default=None)
     metrics: Mapped[dict[str, Any]] = mapped_column(default=dict)
+
+
+class JobAttempt(Base):
+    """One attempt of a job: when it was queued, started and ended, on which worker, how it
+    ended and why (the reason a retry was needed). ``queued_s`` of a job sums the attempts'
+    waits, so a dead attempt's run time never counts as waiting."""
+
+    __tablename__ = "job_attempts"
+    __table_args__ = (UniqueConstraint("job_id", "attempt"),)
+    id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
+    job_id: Mapped[str] = mapped_column(ForeignKey("jobs.id", ondelete="CASCADE"), index=True)
+    attempt: Mapped[int] = mapped_column(Integer)
+    queued_at: Mapped[datetime] = mapped_column(default=utcnow)
+    started_at: Mapped[datetime | None] = mapped_column(default=None)
+    finished_at: Mapped[datetime | None] = mapped_column(default=None)
+    worker_name: Mapped[str | None] = mapped_column(String(128), default=None)
+    outcome: Mapped[str] = mapped_column(String(16), default="queued",
+                                         comment="queued, running, done, failed, canceled, retried")
+    reason: Mapped[str | None] = mapped_column(Text, default=None)
+
+
+def attempt_started(session: Session, job_id: str, attempt: int, worker: str | None, now: datetime) -> None:
+    """Record that ``attempt`` started (its row is created if a retry path did not make it)."""
+    n = session.execute(update(JobAttempt).where(JobAttempt.job_id == job_id, JobAttempt.attempt == attempt,
+                                                 JobAttempt.started_at.is_(None))
+                        .values(started_at=now, worker_name=worker, outcome="running")).rowcount
+    if not n and session.scalar(select(JobAttempt.id).where(JobAttempt.job_id == job_id,
+                                                            JobAttempt.attempt == attempt)) is None:
+        job = session.get(Job, job_id)
+        queued = (job.created_at if attempt == 1 else job.enqueued_at) or now
+        session.add(JobAttempt(job_id=job_id, attempt=attempt, queued_at=min(queued, now), started_at=now,
+                               worker_name=worker, outcome="running"))
+
+
+def attempt_ended(session: Session, job_id: str, attempt: int, outcome: str, reason: str | None = None,
+                  next_attempt: bool = False) -> None:
+    """Close ``attempt`` with ``outcome`` and ``reason``; with ``next_attempt`` the retry's row
+    (attempt + 1, queued now) is created too."""
+    now = utcnow()
+    n = session.execute(update(JobAttempt).where(JobAttempt.job_id == job_id, JobAttempt.attempt == attempt)
+                        .values(finished_at=now, outcome=outcome, reason=reason)).rowcount
+    if not n:
+        job = session.get(Job, job_id)
+        session.add(JobAttempt(job_id=job_id, attempt=attempt, queued_at=job.created_at if job else now,
+                               started_at=job.started_at if job else None, finished_at=now, outcome=outcome,
+                               reason=reason, worker_name=job.worker_name if job else None))
+    if next_attempt:
+        session.add(JobAttempt(job_id=job_id, attempt=attempt + 1, queued_at=now))
+
+
+def queued_seconds(created_at: datetime, started_at: datetime | None, attempts: list) -> float | None:
+    """Time a job spent waiting for a worker: the sum of its attempts' waits (queued -> started);
+    without attempt rows (jobs older than the table), submission to the last start."""
+    if started_at is None:
+        return None
+    waits = [(a.started_at - a.queued_at).total_seconds() for a in attempts if a.started_at is not None]
+    if not waits:
+        return (started_at - created_at).total_seconds()
+    return max(sum(waits), 0.0)
 
 
 def pending_stage_names(session: Session, job_id: str) -> list[str]:

@@ -30,7 +30,8 @@ from pathlib import Path
 from sqlalchemy import delete, func, select, update
 
 from api_schemas import OutputKind, RenderRequest
-from worker.db import Artifact, Database, Job, JobStage, Scene, get_database, pending_stage_names, utcnow
+from worker.db import (Artifact, Database, Job, JobStage, Scene, attempt_ended, attempt_started, get_database,
+                       pending_stage_names, utcnow)
 from worker.registry import JobType, register
 from worker.settings import QUEUE_RENDER, Settings, get_settings
 from worker.storage import ArtifactStore, get_store
@@ -44,6 +45,26 @@ CONTENT_TYPES = {".exr": "image/x-exr", ".mp4": "video/mp4", ".png": "image/png"
 def content_type(name: str) -> str:
     ext = os.path.splitext(name)[1].lower()
     return CONTENT_TYPES.get(ext) or mimetypes.guess_type(name)[0] or "application/octet-stream"
+
+
+def finite_metrics(metrics: dict, where: str) -> dict:
+    """``metrics`` with every NaN or infinite number replaced by None (JSON has no NaN: the API,
+    the database's JSON and the dashboard would get invalid documents), each replacement logged
+    with its key. A curve keeps its finite points only."""
+    import math
+
+    out = {}
+    for k, v in metrics.items():
+        if isinstance(v, float) and not math.isfinite(v):
+            log.warning("%s: metric %r is %s (e.g. no test frames to measure it on); stored as null", where, k, v)
+            v = None
+        elif isinstance(v, (list, tuple)):
+            bad = [x for x in v if isinstance(x, float) and not math.isfinite(x)]
+            if bad:
+                log.warning("%s: curve %r has %d non-finite value(s); dropped", where, k, len(bad))
+                v = [x for x in v if not (isinstance(x, float) and not math.isfinite(x))]
+        out[k] = v
+    return out
 
 
 class JobCanceled(BaseException):
@@ -121,6 +142,7 @@ class JobContext:
         [...]}``: lists are drawn as curves on the dashboard)."""
         if not self._p.stage:
             return
+        metrics = finite_metrics(metrics, f"job {self.job.id} stage {self._p.stage}")
         where = (JobStage.job_id == self.job.id, JobStage.name == self._p.stage)
         with self.db.session() as s:
             old = s.scalar(select(JobStage.metrics).where(*where)) if merge else None
@@ -242,6 +264,7 @@ def _claim(db: Database, job_id: str, attempt: int, stage: str | None = None) ->
                               **({} if stage else {"progress": 0.0}))).rowcount
         if not n:
             return None
+        attempt_started(s, job_id, attempt, worker, now)
         reset = update(JobStage).where(JobStage.job_id == job_id)
         if stage is not None:
             reset = reset.where(JobStage.state != "done")
@@ -250,10 +273,13 @@ def _claim(db: Database, job_id: str, attempt: int, stage: str | None = None) ->
 
 
 def _settle(db: Database, job: Job, **values) -> bool:
+    """End the running attempt with ``values`` (state, error); its attempt row records the same."""
     with db.session() as s:
-        return bool(s.execute(update(Job).where(Job.id == job.id, Job.state == "running",
-                                                Job.attempts == job.attempts)
-                              .values(finished_at=utcnow(), eta_s=None, **values)).rowcount)
+        n = s.execute(update(Job).where(Job.id == job.id, Job.state == "running", Job.attempts == job.attempts)
+                      .values(finished_at=utcnow(), eta_s=None, **values)).rowcount
+        if n:
+            attempt_ended(s, job.id, job.attempts, values.get("state", "failed"), values.get("error"))
+        return bool(n)
 
 
 def run_job(job_id: str, attempt: int, stage: str | None = None) -> dict:
@@ -312,6 +338,8 @@ def run_job(job_id: str, attempt: int, stage: str | None = None) -> dict:
                               enqueued_at=now, heartbeat_at=now)
             n = s.execute(update(Job).where(Job.id == job.id, Job.state == "running", Job.attempts == attempt)
                           .values(**values)).rowcount
+            if n and last:
+                attempt_ended(s, job.id, attempt, "done")
             if n:
                 names = [name for name, _, _ in ctx._artifacts]
                 if chain is None:
@@ -341,6 +369,9 @@ def run_job(job_id: str, attempt: int, stage: str | None = None) -> dict:
                 n = s.execute(update(Job).where(Job.id == job.id, Job.state == "running", Job.attempts == attempt)
                               .values(state="queued", attempts=attempt + 1, eta_s=None, worker_name=None,
                                       enqueued_at=None, error=f"attempt {attempt} failed: {msg}")).rowcount
+                if n:
+                    attempt_ended(s, job.id, attempt, "retried", f"attempt {attempt} failed: {msg}",
+                                  next_attempt=True)
             if n:
                 job.attempts = attempt + 1
                 from worker.queue import redis_conn, try_enqueue

@@ -54,6 +54,18 @@ class Settings(BaseSettings):
                                                                   "accepted jobs missing from Redis.")
     requeue_grace_s: float = Field(5.0, ge=0, description="A queued job younger than this is never "
                                                           "re-enqueued (its enqueue may be in flight).")
+    failed_artifact_ttl_s: float = Field(7 * 86400, ge=0, description="Artifacts of failed or canceled jobs "
+                                                                       "(e.g. finished stages of a chain that "
+                                                                       "failed later) are deleted this long after "
+                                                                       "the job ended.")
+    janitor_interval_s: float = Field(60.0, gt=0, description="How often the gateway removes expired artifacts "
+                                                                "of failed jobs and dead attempts' work dirs.")
+    worker_ttl_s: int = Field(30, ge=16, description="RQ worker TTL: an idle worker refreshes its registration "
+                                                       "every worker_ttl_s - 15 s.")
+    worker_stale_s: float = Field(60.0, gt=0, description="A worker whose RQ heartbeat is older does not count "
+                                                            "as live (readiness, metrics).")
+    restart_backoff_max_s: float = Field(30.0, gt=0, description="brdf up: longest wait before restarting a "
+                                                                   "worker that keeps exiting.")
     bootstrap_operator_key: str | None = Field(None, description="If set, this operator API key is "
                                                                  "registered (hashed) at startup.")
     auth_cache_s: float = Field(10.0, ge=0, description="How long a verified API key is cached.")

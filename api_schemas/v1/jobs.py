@@ -28,15 +28,31 @@ class StageOut(Model):
     progress: float = Field(ge=0.0, le=1.0)
     started_at: datetime | None = None
     finished_at: datetime | None = None
-    metrics: dict[str, list[float]] = Field(default_factory=dict,
-                                            description="per-stage curves, e.g. losses by iteration")
+    metrics: dict[str, list[float] | float | str | bool | None] = Field(
+        default_factory=dict, description="per-stage curves (e.g. the loss by iteration) and figures (e.g. "
+                                          "test_psnr, seconds)")
+
+
+class AttemptOut(Model):
+    """One attempt of a job: a retry is a new attempt, and ``reason`` says why the previous one
+    ended (e.g. its work horse was killed)."""
+
+    attempt: int = Field(ge=1)
+    outcome: str = Field(description="queued, running, done, failed, canceled or retried",
+                         examples=["retried"])
+    reason: str | None = Field(None, description="why the attempt ended (retried or failed ones)")
+    worker: str | None = None
+    queued_at: datetime | None = None
+    started_at: datetime | None = None
+    finished_at: datetime | None = None
 
 
 class Timings(Model):
     created_at: datetime
     started_at: datetime | None = None
     finished_at: datetime | None = None
-    queued_s: float | None = Field(None, description="time from submission to the start of the last attempt")
+    queued_s: float | None = Field(None, description="time spent waiting for a worker: the sum of the attempts' "
+                                                     "waits (a dead attempt's run time is not counted)")
     run_s: float | None = Field(None, description="time the last attempt ran (so far)")
 
 
@@ -53,6 +69,7 @@ class JobOut(Model):
     error: str | None = Field(None, description="why the job failed (last attempt)")
     timings: Timings
     stages: list[StageOut] = Field(default_factory=list)
+    attempt_history: list[AttemptOut] = Field(default_factory=list, description="every attempt, oldest first")
     params: dict = Field(default_factory=dict, description="the validated request")
     artifacts_url: str
 

@@ -102,9 +102,32 @@ class CameraPose(Model):
 
 
 class CameraPath(Model):
+    """Explicit camera poses (a new path), with a scene camera's intrinsics."""
+
     camera: str = Field(min_length=1, max_length=64, description="camera id in the scene (intrinsics)")
     poses: list[CameraPose] = Field(min_length=1, max_length=10_000)
     fps: float = Field(10.0, gt=0.0, le=240.0, allow_inf_nan=False)
+
+
+class CapturedPath(Model):
+    """The capture's own camera path, edited: shifted sideways (a lane change) or up, over a time
+    range, resampled at a frame rate (poses between captured frames interpolated)."""
+
+    split: Literal["all", "train", "test"] = Field("train", description="whose frames make the path")
+    camera: str | None = Field(None, min_length=1, max_length=64, description="default: the split's first camera")
+    lateral_shift_m: float = Field(0.0, ge=-100.0, le=100.0, allow_inf_nan=False,
+                                   description="metres to the camera's left (negative: right), level with the ground")
+    height_shift_m: float = Field(0.0, ge=-100.0, le=100.0, allow_inf_nan=False, description="metres up")
+    start_s: float | None = Field(None, ge=0.0, le=1e6, allow_inf_nan=False, description="default: the first frame")
+    stop_s: float | None = Field(None, ge=0.0, le=1e6, allow_inf_nan=False, description="inclusive; default: the last")
+    fps: float | None = Field(None, gt=0.0, le=240.0, allow_inf_nan=False,
+                              description="resample at this rate; default: the captured frames themselves")
+
+    @model_validator(mode="after")
+    def _range(self):
+        if self.start_s is not None and self.stop_s is not None and self.stop_s < self.start_s:
+            raise ValueError(f"stop_s ({self.stop_s}) must not be before start_s ({self.start_s})")
+        return self
 
 
 class LocalLight(Model):
@@ -135,28 +158,60 @@ class LocalLight(Model):
         return self
 
 
+class ObjectPose(Model):
+    time_index: int = Field(ge=0, le=1_000_000, description="the scene's time index")
+    obj_to_world: Mat4 = Field(description="box centre frame (x forward, y left, z up) to world")
+
+    @field_validator("obj_to_world")
+    @classmethod
+    def _rigid(cls, v):
+        return _check_rigid(v, "obj_to_world")
+
+
 class ObjectEdit(Model):
-    """Insert (a copy of a tracked object), move or remove an object of the scene graph."""
+    """Insert (a copy of a tracked object), move or remove an object of the scene graph (removal
+    hides it in every frame). GET /scenes/{id}/objects lists the ids."""
 
     op: Literal["insert", "move", "remove"]
     object_id: str = Field(min_length=1, max_length=64, description="the object to edit or the new id")
     source_object_id: str | None = Field(None, min_length=1, max_length=64,
                                          description="insert: the tracked object to copy")
+    source_scene_id: Id | None = Field(None, description="insert: copy source_object_id from this other scene's "
+                                                         "latest reconstruction (an asset: its Gaussians cropped to "
+                                                         "its box, materials, box); offset_m is then its world "
+                                                         "position here and yaw_deg its heading, or poses its path")
     offset_m: Vec3 = Field(default_factory=lambda: [0.0, 0.0, 0.0], description="translation, metres")
     yaw_deg: Degrees = 0.0
+    speed: float = Field(1.0, ge=0.0, le=100.0, allow_inf_nan=False,
+                         description="trajectory: cover the path this many times as fast (0: stand at the first pose)")
+    lateral_offset_m: float = Field(0.0, ge=-100.0, le=100.0, allow_inf_nan=False,
+                                    description="trajectory: metres along the object's own left axis (a lane offset)")
+    poses: list[ObjectPose] = Field(default_factory=list, max_length=10_000,
+                                    description="trajectory: explicit poses replacing the object's")
+    crop_to_box: bool = Field(True, description="keep only the object's Gaussians inside its box (no floaters "
+                                                "travel with a moved or inserted object)")
+    solid: bool = Field(True, description="fill the moved or inserted object's inside with opaque Gaussians, so it "
+                                          "casts a solid shadow (a reconstructed shell is half-transparent to shadow "
+                                          "rays)")
 
     @model_validator(mode="after")
     def _fields(self):
         if self.op == "insert" and not self.source_object_id:
             raise ValueError("source_object_id: required for insert")
-        if self.op != "insert" and self.source_object_id:
-            raise ValueError(f"source_object_id: only allowed for insert, not {self.op}")
+        if self.op != "insert" and (self.source_object_id or self.source_scene_id):
+            raise ValueError(f"source_object_id, source_scene_id: only allowed for insert, not {self.op}")
+        if self.op == "remove" and (self.poses or self.speed != 1.0 or self.lateral_offset_m):
+            raise ValueError("poses, speed, lateral_offset_m: not allowed for remove")
+        if len({p.time_index for p in self.poses}) != len(self.poses):
+            raise ValueError("poses: a time_index appears twice")
         return self
 
 
 class _Shot(Model):
     frames: FrameRange | None = Field(None, description="render these frames' cameras (default: all)")
-    camera_path: CameraPath | None = Field(None, description="or a new camera path")
+    camera_path: CameraPath | None = Field(None, description="or a new camera path (explicit poses)")
+    captured_path: CapturedPath | None = Field(None, description="or the captured path shifted, over a time range, "
+                                                                 "at a frame rate")
     outputs: Outputs = Field(default_factory=lambda: [OutputKind.exr, OutputKind.mp4, OutputKind.png])
     quality: Quality = Field(default_factory=Quality)
 
@@ -164,8 +219,8 @@ class _Shot(Model):
 
     @model_validator(mode="after")
     def _one_view_source(self):
-        if self.frames is not None and self.camera_path is not None:
-            raise ValueError("give frames or camera_path, not both")
+        if sum(x is not None for x in (self.frames, self.camera_path, self.captured_path)) > 1:
+            raise ValueError("give one of frames, camera_path or captured_path")
         return self
 
 
@@ -176,7 +231,8 @@ class RelightRequest(_Shot):
     envmap_name: str | None = Field(None, min_length=1, max_length=64, pattern=r"^[a-z0-9_-]+$",
                                     description="or a bundled HDRI: city, sunset, ...")
     rotation_deg: Degrees = Field(0.0, description="rotate the map about +z (azimuth)")
-    exposure_ev: Ev = 0.0
+    exposure_ev: Ev | None = Field(None, description="exposure in stops on top of the capture's; null (default): "
+                                                     "automatic, one exposure for the clip from its HDR frames")
     lights: list[LocalLight] = Field(default_factory=list, max_length=256)
     object_edits: list[ObjectEdit] = Field(default_factory=list, max_length=256)
 
@@ -198,21 +254,40 @@ class RelightRequest(_Shot):
         return self
 
 
+Pos2or3 = Annotated[list[Coord], Field(min_length=2, max_length=3, description="[x, y] or [x, y, z] metres")]
+
+
 class NightRequest(_Shot):
-    """``POST /scenes/{id}/night``: a night scenario with street lights and car headlights."""
+    """``POST /scenes/{id}/night``: a night scenario with street lights and vehicle lights."""
 
     sky_scale: float = Field(0.02, ge=0.0, le=1.0, allow_inf_nan=False,
                              description="multiplier on the scene's environment map")
-    street_lights: bool = True
-    street_light_intensity: float = Field(800.0, gt=0.0, le=1e6, allow_inf_nan=False, description="candela")
-    headlights: bool = True
+    street_lights: bool = Field(True, description="street lamps: spots pointing down (the job's stage metrics and "
+                                                  "street_lights.json list where they were put)")
+    street_light_placement: Literal["detect", "spacing"] = Field(
+        "detect", description="detect: lamps on the poles found in the LiDAR (else the reconstruction's Gaussians), "
+                              "rows by spacing when none is found; spacing: rows along both sides of the road")
+    street_light_positions: list[Pos2or3] | None = Field(
+        None, max_length=1000, description="explicit lamp positions instead: [x, y] (6 m above the ground there) "
+                                           "or [x, y, z] (the lamp head)")
+    street_light_spacing_m: float = Field(25.0, ge=1.0, le=1000.0, allow_inf_nan=False,
+                                          description="distance between lamps along the road (placement spacing)")
+    street_light_intensity: float = Field(2000.0, gt=0.0, le=1e6, allow_inf_nan=False,
+                                          description="candela toward the road (a ~6000 lm LED street lamp)")
+    headlights: bool = Field(True, description="vehicle lights: two headlights and two red tail lights on every "
+                                               "vehicle, following it")
     headlight_intensity: float = Field(3000.0, gt=0.0, le=1e6, allow_inf_nan=False, description="candela")
+    tail_lights: bool = True
+    vehicle_lights_off: list[Annotated[str, Field(min_length=1, max_length=64)]] = Field(
+        default_factory=list, max_length=256, description="object ids whose vehicle lights are off")
     lights: list[LocalLight] = Field(default_factory=list, max_length=256)
-    exposure_ev: Ev = 2.0
+    object_edits: list[ObjectEdit] = Field(default_factory=list, max_length=256)
+    exposure_ev: Ev | None = Field(None, description="exposure in stops on top of the capture's; null (default): "
+                                                     "automatic, one exposure for the clip from its HDR frames")
 
     model_config = {"json_schema_extra": {"examples": [{
-        "sky_scale": 0.02, "street_lights": True, "headlights": True, "exposure_ev": 2.0,
-        "frames": {"split": "test"}, "outputs": ["mp4", "png"],
+        "sky_scale": 0.02, "street_lights": True, "street_light_placement": "detect", "headlights": True,
+        "vehicle_lights_off": ["car0"], "frames": {"split": "test"}, "outputs": ["mp4", "png"],
     }]}}
 
 

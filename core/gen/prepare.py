@@ -102,6 +102,11 @@ def synth_config_of(bundle):
     if src.get("generator") != "core.synth" or not isinstance(cfg, dict):
         raise FormatError(f"{bundle.root}: not a core.synth bundle (bundle.json source.config missing); "
                           "PBR training inputs are made from synthetic scenes")
+    if cfg.get("scene_spec"):
+        # core.pbr.oracle rebuilds the fixed generator's street (lane, pinhole, flat albedo): for a
+        # randomised street it would be the wrong scene, so refuse rather than train on it
+        raise FormatError(f"{bundle.root}: a randomised street (core.synth.randomise); its PBR oracle "
+                          "inputs are not supported yet (use DataSettings(forward_source='degrade'))")
     known = {f for f in SynthConfig.__dataclass_fields__}
     vals = {k: (tuple(v) if isinstance(v, list) else v) for k, v in cfg.items() if k in known}
     return SynthConfig(**vals)

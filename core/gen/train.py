@@ -157,9 +157,10 @@ def edm_loss(model, batch: dict[str, torch.Tensor], s: TrainSettings, gen: torch
 
 
 def _atomic_save(obj, path: Path) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
+    from core.io.atomic import atomic_output
+
+    with atomic_output(path) as tmp:
+        torch.save(obj, tmp)
 
 
 def _sha256(path: Path) -> str:
@@ -187,9 +188,11 @@ def write_model_card(onnx_path: str | Path, kind: str, *, network: dict, trainin
         "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "torch": torch.__version__},
     }
     out = p.with_name(p.stem + ".card.json")
-    tmp = out.with_name(out.name + ".tmp")
-    tmp.write_text(json.dumps(card, indent=2, default=str))
-    os.replace(tmp, out)
+    from core.io.atomic import atomic_output
+
+    text = json.dumps(card, indent=2, default=str)
+    with atomic_output(out) as tmp:
+        Path(tmp).write_text(text)
     return out
 
 

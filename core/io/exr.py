@@ -24,11 +24,10 @@ Multi-part files: every part's header is checked, but only part 0 is returned.
 
 from __future__ import annotations
 
-import contextlib
+import dataclasses
 import os
 import struct
-import tempfile
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -83,33 +82,12 @@ class ExrHeader:
     num_parts: int
     #: (xSampling, ySampling) per channel, parallel to ``channels``.
     sampling: tuple[tuple[int, int], ...] = ()
+    #: Byte offset of the chunk offset table (single-part files; -1 otherwise).
+    table_offset: int = -1
 
 
-# ---------------------------------------------------------------------------------------------
-# shared helper: atomic output (also used by the other core.io writers)
-# ---------------------------------------------------------------------------------------------
-
-@contextlib.contextmanager
-def atomic_output(path: str | os.PathLike, suffix: str = "") -> Iterator[str]:
-    """Yield a temporary file name next to ``path``; on success it is renamed onto ``path``.
-
-    The temporary file lives in the same directory (so :func:`os.replace` is atomic) and ends
-    with ``suffix`` (some writers pick a format from the extension). On any exception the
-    temporary file is removed and ``path`` is left untouched.
-    """
-    target = os.fspath(path)
-    directory = os.path.dirname(os.path.abspath(target))
-    fd, tmp = tempfile.mkstemp(dir=directory, prefix="." + os.path.basename(target) + ".",
-                               suffix=".tmp" + suffix)
-    os.close(fd)
-    try:
-        yield tmp
-        os.chmod(tmp, 0o644)  # mkstemp creates 0600; outputs are meant to be shared
-        os.replace(tmp, target)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        raise
+# atomic_output lives in core.io.atomic; re-exported here for the writers that import it from exr
+from core.io.atomic import atomic_output  # noqa: E402,F401
 
 
 # ---------------------------------------------------------------------------------------------
@@ -235,7 +213,7 @@ def _read_headers(path: str | os.PathLike) -> list[ExrHeader]:
     long_names = bool(flags & _FLAG_LONG_NAMES)
     if not flags & _FLAG_MULTIPART:
         attrs = _parse_one_header(rd, long_names)
-        return [_header_from_attrs(attrs, rd, flags, 1)]
+        return [dataclasses.replace(_header_from_attrs(attrs, rd, flags, 1), table_offset=rd.pos)]
     parts: list[dict[str, tuple[str, bytes]]] = []
     while True:  # multi-part: headers back to back, the list ends with an empty header
         if rd.pos < len(rd.buf) and rd.buf[rd.pos] == 0:
@@ -247,6 +225,41 @@ def _read_headers(path: str | os.PathLike) -> list[ExrHeader]:
     if not parts:
         raise FormatError(f"{p}: multi-part EXR with no parts")
     return [_header_from_attrs(a, rd, flags, len(parts)) for a in parts]
+
+
+#: Scanlines per chunk of each compression (the OpenEXR spec); others are not checked here.
+_LINES_PER_CHUNK = {"none": 1, "rle": 1, "zips": 1, "zip": 16, "pxr24": 16, "piz": 32, "b44": 32, "b44a": 32,
+                    "dwaa": 32, "dwab": 256, "htj2k32": 32, "htj2k256": 256}
+
+
+def _check_chunks(p: str, head: ExrHeader) -> None:
+    """Check a single-part scanline file's chunk offset table and chunk leaders against the file,
+    so a truncated or garbled file is refused with what is wrong and where (the OpenEXR binding
+    only says "file has 0 parts"). Raises :class:`FormatError`."""
+    lpc = _LINES_PER_CHUNK.get(head.compression)
+    if head.table_offset < 0 or head.tiled or head.deep or lpc is None:
+        return
+    n = -(-head.height // lpc)
+    with open(p, "rb") as fh:
+        size = os.fstat(fh.fileno()).st_size
+        end = head.table_offset + 8 * n
+        if end > size:
+            raise FormatError(f"{p}: truncated EXR: the table of {n} chunk offsets ends at byte {end}, "
+                              f"the file has {size} bytes")
+        fh.seek(head.table_offset)
+        offsets = struct.unpack(f"<{n}Q", fh.read(8 * n))
+        for i, off in enumerate(offsets):
+            what = f"scanline chunk {i} of {n} (lines {head.data_window[1] + i * lpc}...)"
+            if off < end or off + 8 > size:
+                raise FormatError(f"{p}: truncated or corrupt EXR: {what} starts at byte {off}, outside the pixel "
+                                  f"data (bytes {end}-{size})")
+            fh.seek(off)
+            y, packed = struct.unpack("<ii", fh.read(8))
+            if y != head.data_window[1] + i * lpc:
+                raise FormatError(f"{p}: corrupt EXR: {what} at byte {off} is labelled line {y}")
+            if packed < 0 or off + 8 + packed > size:
+                raise FormatError(f"{p}: truncated EXR: {what} at byte {off} holds {packed} bytes and ends past "
+                                  f"the end of the file ({size} bytes)")
 
 
 def exr_header(path: str | os.PathLike) -> ExrHeader:
@@ -477,11 +490,15 @@ def read_exr(
     headers = _read_headers(p)
     _check_limits(p, headers, max_pixels, max_channels)
     head = headers[0]
+    _check_chunks(p, head)
     try:
         exr = OpenEXR.File(p, separate_channels=True)
         chans = {name: ch.pixels for name, ch in exr.channels(0).items()}
     except Exception as exc:  # the binding raises bare RuntimeError/ValueError
-        raise FormatError(f"{p}: corrupt or truncated EXR ({exc})") from exc
+        # its message for undecodable pixel data is "file has 0 parts": say what it means
+        raise FormatError(f"{p}: corrupt EXR pixel data: the OpenEXR library could not decode part 0 "
+                          f"({head.width}x{head.height}, {head.compression} compression); the file is damaged "
+                          f"or was not completely written") from exc
     if set(chans) != set(head.channels):
         raise FormatError(f"{p}: channels {sorted(chans)} differ from the header's "
                           f"{sorted(head.channels)}")

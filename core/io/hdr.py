@@ -23,7 +23,7 @@ import os
 import numpy as np
 
 from core.errors import ConfigError, FormatError, NumericalError, ShapeError
-from core.io.exr import atomic_output
+from core.io.atomic import atomic_output
 from core.numerics import require_finite_np
 
 #: Longest text header accepted (real headers are a few hundred bytes).

@@ -12,7 +12,7 @@ import warnings
 import numpy as np
 
 from core.errors import ConfigError, FormatError, ShapeError
-from core.io.exr import atomic_output
+from core.io.atomic import atomic_output
 
 DEFAULT_MAX_PIXELS = 64_000_000
 

@@ -9,7 +9,7 @@ from fractions import Fraction
 import numpy as np
 
 from core.errors import ConfigError, FormatError, ShapeError
-from core.io.exr import atomic_output
+from core.io.atomic import atomic_output
 
 
 def _check_frame(frame: np.ndarray, index: int, size: tuple[int, int] | None) -> np.ndarray:

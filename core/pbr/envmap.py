@@ -57,7 +57,7 @@ import torch.nn.functional as F
 
 from core import conventions
 from core.errors import ConfigError, ShapeError
-from core.numerics import LOG_RADIANCE_FLOOR, require_finite
+from core.numerics import ENV_RADIANCE_MAX, LOG_RADIANCE_FLOOR, require_finite
 
 #: Default size of the resampled map (rows, columns), as in the paper.
 DEFAULT_SIZE = (512, 1024)
@@ -97,6 +97,10 @@ def _as_map(rgb, dtype: torch.dtype) -> torch.Tensor:
     require_finite(t, "rgb")
     if bool((t < 0).any()):
         raise ConfigError(f"rgb: {int((t < 0).sum())} negative value(s); radiance must be >= 0")
+    # finite but near float32's end overflows to Inf in lookups and exp(log(x)) (stress tests)
+    if bool((t > ENV_RADIANCE_MAX).any()):
+        raise ConfigError(f"rgb: {int((t > ENV_RADIANCE_MAX).sum())} value(s) above {ENV_RADIANCE_MAX:g} "
+                          f"(core.numerics.ENV_RADIANCE_MAX); max {float(t.max()):.3g}")
     return t
 
 

@@ -49,6 +49,7 @@ import numpy as np
 import torch
 
 from core.errors import ConfigError, ShapeError
+from core.gaussians import Gaussians
 from core.pbr.envmap import EnvironmentMap, luminance
 from core.pbr.visibility import GaussianTracer, TraceSettings
 
@@ -433,7 +434,6 @@ class ClipRenderer:
 
     def __init__(self, scene, env: EnvironmentMap, settings: PBRSettings | None = None, *, lights=(),
                  static_reuse: bool = True, raster_settings=None):
-        from core.gaussians import Gaussians
         from core.raster import RasterSettings
         from core.scene_graph import SceneGraph
 
@@ -451,7 +451,10 @@ class ClipRenderer:
         else:
             raise ConfigError(f"scene: expected a SceneGraph or Gaussians, got {type(scene).__name__}")
         t0 = time.perf_counter()
-        self.context = FrameContext(env, self.settings, static_gaussians=self.static if self.static_reuse else None)
+        # static shadow casters: the static part plus the graph's shadow-only occluders
+        shadow_static = (self.graph.shadow_static() if self.graph is not None else self.static) if self.static_reuse \
+            else None
+        self.context = FrameContext(env, self.settings, static_gaussians=shadow_static)
         self.setup_seconds = time.perf_counter() - t0
 
     def render(self, camera, time_s: float = 0.0, frame_index: int = 0) -> PBRResult:
@@ -475,7 +478,9 @@ class ClipRenderer:
                 if g.num > n_static:
                     dyn = GaussianTracer.from_gaussians(g.index(slice(n_static, None)), self.settings.trace)
             else:
-                dyn = GaussianTracer.from_gaussians(g, self.settings.trace) if g.num else None
+                occ = self.graph.occluders if self.graph is not None else None
+                gs = Gaussians.cat([g, occ.detach().to(g.dtype)]) if occ is not None and occ.num else g
+                dyn = GaussianTracer.from_gaussians(gs, self.settings.trace) if gs.num else None
             t_bvh = time.perf_counter() - t0
             out = rasterize_gaussians(g, torch.as_tensor(cam.cam_to_world, dtype=g.dtype), cam.fx, cam.fy, cam.cx,
                                       cam.cy, cam.width, cam.height, settings=self.raster_settings)

@@ -8,10 +8,15 @@ logic of its own.
   (:func:`views_from_path`); OpenCV cameras, scene times in seconds;
 * lighting: an HDR environment map (linear radiance, project equirect convention) with a rotation
   about +z (degrees) and a scale (the night sky is the scene's own map scaled down);
-* local lights (:class:`LightSpec`: point / spot, candela, world or attached to an object) and the
-  night's vehicle headlights (two spots forward per tracked object);
-* object edits (:class:`core.relight.ObjectEdit`: insert a copy, move, remove);
-* exposure (EV, on top of the capture's LDR exposure), rays per pixel, shadows, denoiser.
+* local lights (:class:`LightSpec`: point / spot, candela, world or attached to an object), street
+  lights (:mod:`core.render.streetlights`: spots pointing down, placed from a spec, by a spacing
+  along the road, or detected as poles in the LiDAR / the Gaussians) and vehicle lights
+  (:func:`core.render.objects.vehicle_lights`: two headlights and two tail lights on every vehicle
+  node, following its pose, switchable per object);
+* object edits (:class:`core.relight.ObjectEdit`: insert a copy or an asset, move, retime, remove);
+* exposure: automatic (:mod:`core.render.exposure`, one value for the clip, the default of the
+  night and relight requests) or an explicit EV on top of the capture's LDR exposure; rays per
+  pixel, shadows, denoiser.
 """
 
 from __future__ import annotations
@@ -22,13 +27,12 @@ from pathlib import Path
 from typing import Callable, Sequence
 
 import numpy as np
+import torch
 
 from core.errors import ConfigError
 from core.relight import ObjectEdit, View
+from core.render.exposure import AutoExposure
 
-#: Headlights of the night scenario, in the object frame (x forward, y left, z up; metres; the
-#: tracked boxes of the bundles are centred on the car).
-HEADLIGHT_OFFSETS = ((2.2, 0.6, -0.1), (2.2, -0.6, -0.1))
 DENOISERS = ("none", "oidn", "diffusion")
 
 
@@ -45,6 +49,7 @@ class LightSpec:
     cone_inner_deg: float = 20.0
     cone_outer_deg: float = 30.0
     attach_to: str | None = None
+    range_m: float | None = None
 
     @classmethod
     def from_dict(cls, d: dict, what: str = "light") -> "LightSpec":
@@ -97,14 +102,25 @@ class Scenario:
     """Multiplier on the map (the night sky: the scene's own map scaled down)."""
     lights: tuple[LightSpec, ...] = ()
     """Local lights."""
+    street_lights: tuple[LightSpec, ...] = ()
+    """Street lamps (:func:`core.render.streetlights.lamp_lights`), reported apart from ``lights``."""
     headlights: bool = False
-    """Two forward spots on every tracked object (night)."""
+    """Vehicle lights on every vehicle node (:func:`core.render.objects.vehicle_lights`)."""
     headlight_intensity: float = 3000.0
     """Candela of each headlight."""
+    tail_lights: bool = True
+    """With ``headlights``: two red tail lights per vehicle too."""
+    tail_light_intensity: float = 10.0
+    """Candela of each tail light."""
+    vehicle_lights_off: tuple[str, ...] = ()
+    """Objects whose vehicle lights are off."""
     edits: tuple[ObjectEdit, ...] = ()
     """Object edits applied to the scene graph first."""
-    exposure_ev: float = 0.0
-    """Exposure on top of the capture's LDR exposure, EV (stops)."""
+    exposure_ev: float | None = 0.0
+    """Exposure on top of the capture's LDR exposure, EV (stops); None: automatic
+    (``auto_exposure``, measured on the rendered clip)."""
+    auto_exposure: AutoExposure = field(default_factory=AutoExposure)
+    """Settings of the automatic exposure (used when ``exposure_ev`` is None)."""
     base_exposure: float = 1.0
     """The capture's LDR exposure (the bundle's ``ldr.exposure``)."""
     gamma: float = 2.2
@@ -142,8 +158,12 @@ class Scenario:
             raise ConfigError(f"envmap: expected an equirect [H, 2H, 3] map, got {env.shape}")
         if not np.isfinite(env).all() or (env < 0).any():
             raise ConfigError("envmap: values must be finite and >= 0")
-        for name, v, lo, hi in (("rotation_deg", self.rotation_deg, -1e6, 1e6), ("sky_scale", self.sky_scale, 0, 1e6),
-                                ("exposure_ev", self.exposure_ev, -20, 20), ("fps", self.fps, 1e-3, 240)):
+        checks = [("rotation_deg", self.rotation_deg, -1e6, 1e6), ("sky_scale", self.sky_scale, 0, 1e6),
+                  ("fps", self.fps, 1e-3, 240), ("headlight_intensity", self.headlight_intensity, 0, 1e7),
+                  ("tail_light_intensity", self.tail_light_intensity, 0, 1e7)]
+        if self.exposure_ev is not None:
+            checks.append(("exposure_ev", self.exposure_ev, -20, 20))
+        for name, v, lo, hi in checks:
             if not (isinstance(v, (int, float)) and math.isfinite(v) and lo <= v <= hi):
                 raise ConfigError(f"{name}: must be a finite number in [{lo}, {hi}], got {v!r}")
         if self.denoiser not in DENOISERS:
@@ -156,6 +176,12 @@ class Scenario:
             raise ConfigError(f"shadow_t_min_m: must be in [0, 100] metres, got {self.shadow_t_min_m!r}")
         if not (isinstance(self.rays_per_pixel, int) and 1 <= self.rays_per_pixel <= 4096):
             raise ConfigError(f"rays_per_pixel: must be an int in [1, 4096], got {self.rays_per_pixel!r}")
+        if not isinstance(self.auto_exposure, AutoExposure):
+            raise ConfigError(f"auto_exposure: expected an AutoExposure, got {type(self.auto_exposure).__name__}")
+        for name in ("lights", "street_lights"):
+            for i, lt in enumerate(getattr(self, name)):
+                if not isinstance(lt, LightSpec):
+                    raise ConfigError(f"{name}[{i}]: expected a LightSpec, got {type(lt).__name__}")
 
 
 def views_from_frames(bundle, split: str = "test", start: int = 0, stop: int | None = None,
@@ -202,6 +228,83 @@ def views_from_path(bundle, camera: str, poses: Sequence[tuple], what: str = "ca
     return out
 
 
+def views_from_capture(bundle, *, split: str = "train", camera: str | None = None, lateral_shift_m: float = 0.0,
+                       height_shift_m: float = 0.0, start_s: float | None = None, stop_s: float | None = None,
+                       fps: float | None = None, what: str = "captured_path") -> list[View]:
+    """Views along the capture's own camera path, edited: the path of ``camera`` (default: the
+    first camera of ``split``'s frames) in ``split`` (train, test, all), shifted sideways by
+    ``lateral_shift_m`` (to the camera's left, level with the ground: a lane change) and up by
+    ``height_shift_m``, resampled at ``fps`` frames per second between ``start_s`` and
+    ``stop_s`` (scene seconds, inclusive; default the capture's first and last time). Poses
+    between two captured frames are interpolated (linear position, slerp rotation). Without
+    ``fps`` the captured frames themselves are used (in the time range). ConfigError names the
+    field."""
+    from core.pbr.render import Camera
+    from core.rotations import quat_slerp, quat_to_rotmat, rotmat_to_quat
+
+    if split not in ("train", "test", "all"):
+        raise ConfigError(f"{what}.split: must be train, test or all, got {split!r}")
+    frames = bundle.frames(None if split == "all" else split)
+    if not frames:
+        raise ConfigError(f"{what}.split: the scene has no {split} frames")
+    cams = sorted({f.camera for f in frames})
+    cam_id = camera if camera is not None else frames[0].camera
+    if cam_id not in cams:
+        raise ConfigError(f"{what}.camera: no camera {cam_id!r} in the {split} frames (cameras: {cams})")
+    times = bundle.manifest.times
+    frames = sorted((f for f in frames if f.camera == cam_id), key=lambda f: f.time_index)
+    ts = np.array([times[f.time_index] if f.time_index < len(times) else float(f.time_index) for f in frames])
+    poses = np.stack([np.asarray(f.cam_to_world, np.float64) for f in frames])
+    for name, v, lo, hi in (("lateral_shift_m", lateral_shift_m, -100, 100), ("height_shift_m", height_shift_m, -100, 100)):
+        if not (isinstance(v, (int, float)) and math.isfinite(v) and lo <= v <= hi):
+            raise ConfigError(f"{what}.{name}: must be a finite number in [{lo}, {hi}] metres, got {v!r}")
+    t0 = float(ts[0]) if start_s is None else float(start_s)
+    t1 = float(ts[-1]) if stop_s is None else float(stop_s)
+    if not (math.isfinite(t0) and math.isfinite(t1)) or t0 > t1:
+        raise ConfigError(f"{what}.start_s: the time range [{t0}, {t1}] is empty")
+    if t1 < ts[0] - 1e-6 or t0 > ts[-1] + 1e-6:
+        raise ConfigError(f"{what}.start_s: the time range [{t0}, {t1}] s lies outside the capture "
+                          f"[{ts[0]:g}, {ts[-1]:g}] s")
+    t0, t1 = max(t0, float(ts[0])), min(t1, float(ts[-1]))
+    if fps is None:
+        sel = [i for i in range(len(ts)) if t0 - 1e-6 <= ts[i] <= t1 + 1e-6]
+        samples = [(float(ts[i]), poses[i]) for i in sel]
+    else:
+        if not (isinstance(fps, (int, float)) and math.isfinite(fps) and 0 < fps <= 240):
+            raise ConfigError(f"{what}.fps: must be in (0, 240], got {fps!r}")
+        n = int(math.floor((t1 - t0) * fps + 1e-6)) + 1
+        if n > 10_000:
+            raise ConfigError(f"{what}.fps: {n} frames in the time range; at most 10000")
+        samples = []
+        for k in range(n):
+            t = t0 + k / fps
+            j = int(np.searchsorted(ts, t))
+            if j <= 0 or len(ts) == 1:
+                m = poses[0]
+            elif j >= len(ts):
+                m = poses[-1]
+            else:
+                w = (t - ts[j - 1]) / max(ts[j] - ts[j - 1], 1e-12)
+                q = quat_slerp(rotmat_to_quat(torch.from_numpy(poses[j - 1][:3, :3])),
+                               rotmat_to_quat(torch.from_numpy(poses[j][:3, :3])), float(w))
+                m = np.eye(4)
+                m[:3, :3] = quat_to_rotmat(q).numpy()
+                m[:3, 3] = poses[j - 1][:3, 3] + w * (poses[j][:3, 3] - poses[j - 1][:3, 3])
+            samples.append((t, m))
+    c = bundle.manifest.cameras[cam_id]
+    out = []
+    for i, (t, m) in enumerate(samples):
+        m = m.copy()
+        left = -m[:3, 0].copy()
+        left[2] = 0.0
+        nrm = float(np.linalg.norm(left))
+        if nrm > 1e-9:
+            m[:3, 3] += lateral_shift_m * left / nrm
+        m[2, 3] += height_shift_m
+        out.append(View(Camera(m, c.fx, c.fy, c.cx, c.cy, c.width, c.height), float(t), f"{i:05d}"))
+    return out
+
+
 def load_path_json(bundle, path: str | Path) -> tuple[list[View], float]:
     """A camera path file: ``{"camera": id, "fps": 10, "poses": [{"cam_to_world": 4x4, "time_s": t}]}``
     (the REST ``camera_path`` object)."""
@@ -233,7 +336,7 @@ def to_lights(specs: Sequence[LightSpec], graph, what: str = "lights") -> list:
             raise ConfigError(f"{what}[{i}].attach_to: no object {lt.attach_to!r} in the reconstruction "
                               f"(objects: {sorted(names)})")
         kw = dict(position=tuple(lt.position), color=tuple(lt.color), intensity=lt.intensity, node=lt.attach_to,
-                  name=f"{what}[{i}]")
+                  name=f"{what}[{i}]", range=lt.range_m)
         if lt.kind == "spot":
             out.append(SpotLight(direction=tuple(lt.direction), inner_deg=lt.cone_inner_deg,
                                  outer_deg=lt.cone_outer_deg, **kw))
@@ -243,16 +346,11 @@ def to_lights(specs: Sequence[LightSpec], graph, what: str = "lights") -> list:
 
 
 def headlights(graph, intensity: float) -> list:
-    """Two forward spot lights on every object node of ``graph`` (object frame, they follow it)."""
-    from core.pbr.lights import SpotLight
+    """Two forward spot lights on every vehicle node of ``graph`` (node frame, they follow it);
+    :func:`core.render.objects.vehicle_lights` without tail lights."""
+    from core.render.objects import vehicle_lights
 
-    out = []
-    for n in graph.nodes:
-        for k, off in enumerate(HEADLIGHT_OFFSETS):
-            out.append(SpotLight(off, direction=(1.0, 0.0, -0.08), inner_deg=12.0, outer_deg=30.0,
-                                 intensity=intensity, color=(1.0, 0.95, 0.85), range=60.0, node=n.name,
-                                 name=f"{n.name}/headlight{k}"))
-    return out
+    return vehicle_lights(graph, headlight_cd=intensity, tail_lights=False)
 
 
 #: The night sky of a reconstruction that has no recovered environment map (no pbr stage): a
@@ -273,14 +371,160 @@ def scene_sky(run) -> tuple[np.ndarray, str]:
             "uniform grey: the reconstruction has no recovered sky (run its pbr stage)")
 
 
+#: How street lights are placed: ``detect`` (poles in the LiDAR, else in the Gaussians; the
+#: spacing rows when none is found, said so), ``spacing`` (rows along the road), ``none``.
+STREET_LIGHT_PLACEMENTS = ("detect", "spacing", "none")
+
+
+def street_lights_for(bundle, graph=None, *, placement: str = "detect", positions=None,
+                      settings=None, intensity_cd: float | None = None) -> tuple[list, list, str]:
+    """Street lamps of a scene: ``(LightSpec spots, Lamp values, note)``. ``positions`` (a list of
+    ``[x, y]`` / ``[x, y, z]``) wins over ``placement``; ``detect`` looks for poles in the
+    bundle's LiDAR, else in the reconstruction's opaque background Gaussians (``graph``), and
+    falls back to ``spacing`` rows along the capture's camera path when it finds none."""
+    from core.render.streetlights import (Ground, StreetLightSettings, detect_poles, lamp_lights, lamps_along_path,
+                                          lamps_at)
+
+    s = settings or StreetLightSettings()
+    if placement not in STREET_LIGHT_PLACEMENTS:
+        raise ConfigError(f"street_light_placement: must be one of {STREET_LIGHT_PLACEMENTS}, got {placement!r}")
+    frames = sorted(bundle.frames("train") or bundle.frames(None), key=lambda f: f.time_index)
+    path = np.array([np.asarray(f.cam_to_world, np.float64)[:3, 3] for f in frames]) if frames else None
+    points, what = None, ""
+    if bundle.manifest.lidar:
+        points, what = bundle.load_lidar()[:, 3:6], "the LiDAR"
+    elif graph is not None:
+        bg = graph.background
+        keep = bg.opacities().detach().reshape(-1) > 0.5
+        points, what = bg.means.detach()[keep].to(torch.float64).numpy(), "the reconstruction's Gaussians"
+    fallback_z = float(np.median(path[:, 2])) - 1.6 if path is not None and len(path) else 0.0
+    ground = Ground(points, s.ground_radius_m, fallback_z) if points is not None else None
+    if positions is not None:
+        lamps, note = lamps_at(positions, ground, s), f"{len(positions)} placed from the request's positions"
+    elif placement == "none":
+        lamps, note = [], "street lights off"
+    else:
+        lamps, note = [], ""
+        if placement == "detect":
+            if points is not None:
+                lamps = detect_poles(points, s, what="points", path_xyz=path)
+                note = f"{len(lamps)} detected as poles in {what}"
+            else:
+                note = "no LiDAR and no reconstruction to detect poles in"
+        if not lamps:
+            if path is None:
+                raise ConfigError("street_lights: the scene has no camera path to place lamps along")
+            lamps = lamps_along_path(path, ground, s)
+            note = (note + "; " if note else "") + f"{len(lamps)} placed every {s.spacing_m:g} m along the road"
+    return lamp_lights(lamps, s, intensity_cd), lamps, note
+
+
 def night_scenario(run, *, sky_scale: float = 0.02, headlights: bool = True, headlight_intensity: float = 3000.0,
-                   exposure_ev: float = 2.0, **kw) -> tuple["Scenario", str]:
+                   exposure_ev: float | None = None, street_lights: bool = True, street_light_placement: str = "detect",
+                   street_light_positions=None, street_light_intensity: float | None = None,
+                   street_light_spacing_m: float | None = None, graph=None, bundle=None,
+                   **kw) -> tuple["Scenario", str]:
     """The night :class:`Scenario` of a reconstruction run: its own sky (:func:`scene_sky`)
-    scaled by ``sky_scale``, headlights on every tracked object, exposure raised; ``kw`` are
-    the other :class:`Scenario` fields (views, lights, edits, ...). Returns (scenario, sky note)."""
+    scaled by ``sky_scale``, vehicle lights on every vehicle node, street lamps
+    (:func:`street_lights_for`; the lamps in ``Scenario.street_lights``), automatic exposure
+    unless ``exposure_ev`` is given; ``kw`` are the other :class:`Scenario` fields (views,
+    lights, edits, ...). ``graph`` / ``bundle``: the run's, when the caller has them loaded.
+    Returns (scenario, note on the sky and the street lights)."""
+    from core.render.streetlights import StreetLightSettings
+
     env, note = scene_sky(run)
+    lamps = ()
+    if street_lights:
+        if bundle is None:
+            from core.bundle import open_bundle
+
+            bundle = open_bundle(run.scene_path(), validate=False)
+        st = StreetLightSettings() if street_light_spacing_m is None else StreetLightSettings(
+            spacing_m=street_light_spacing_m)
+        specs, _lamps, lnote = street_lights_for(bundle, graph, placement=street_light_placement,
+                                                 positions=street_light_positions, settings=st,
+                                                 intensity_cd=street_light_intensity)
+        lamps = tuple(specs)
+        note = f"{note}; street lights: {lnote}"
     return Scenario(envmap=env, sky_scale=sky_scale, headlights=headlights, headlight_intensity=headlight_intensity,
-                    exposure_ev=exposure_ev, **kw), note
+                    exposure_ev=exposure_ev, street_lights=lamps, **kw), note
+
+
+def request_problems(manifest, request: dict, object_ids: Sequence[str] | None = None) -> list[str]:
+    """Every reference of a relight / night request (the REST body as a dict) that the scene
+    cannot satisfy, each as ``"<field>: <problem> (<valid choices>)"``; empty when all is well.
+    Checked: ``envmap_name`` (a bundled HDRI), ``frames`` (the range selects a frame),
+    ``camera_path.camera`` / ``captured_path`` (camera, split, time range), ``object_edits``
+    (ids in order: an edit may refer to an object an earlier edit inserted, not to one it
+    removed; explicit pose time indices), ``lights[i].attach_to`` and ``vehicle_lights_off``
+    (objects after the edits). ``object_ids``: the objects a reconstruction has (default: the
+    bundle's tracked objects)."""
+    from core.io.hdri import hdri_names
+
+    out: list[str] = []
+    ids = list(object_ids) if object_ids is not None else [o.id for o in manifest.objects]
+    n_times = len(manifest.times)
+    name = request.get("envmap_name")
+    if name is not None and name not in hdri_names():
+        out.append(f"envmap_name: no bundled HDRI {name!r} (choices: {hdri_names()})")
+    fr = request.get("frames")
+    if fr:
+        split = fr.get("split", "all")
+        n = len(manifest.frames) if split == "all" else len(manifest.split(split))
+        sel = range(n)[fr.get("start", 0):fr.get("stop"):fr.get("step", 1)]
+        if len(sel) == 0:
+            out.append(f"frames: the range [{fr.get('start', 0)}:{fr.get('stop')}:{fr.get('step', 1)}] selects no "
+                       f"frame of the {n} {split} frame(s) (start must be below {n})")
+    cams = sorted(manifest.cameras)
+    cp = request.get("camera_path")
+    if cp and cp.get("camera") not in manifest.cameras:
+        out.append(f"camera_path.camera: no camera {cp.get('camera')!r} in the scene (cameras: {cams})")
+    cap = request.get("captured_path")
+    if cap:
+        split = cap.get("split", "train")
+        frames = list(manifest.frames) if split == "all" else list(manifest.split(split))
+        if not frames:
+            out.append(f"captured_path.split: the scene has no {split} frames")
+        else:
+            fc = sorted({f.camera for f in frames})
+            cam = cap.get("camera") or frames[0].camera
+            if cam not in fc:
+                out.append(f"captured_path.camera: no camera {cam!r} in the {split} frames (cameras: {fc})")
+            ts = [manifest.times[f.time_index] for f in frames if f.time_index < n_times]
+            if ts:
+                lo, hi = min(ts), max(ts)
+                t0 = cap.get("start_s")
+                t1 = cap.get("stop_s")
+                if (t0 is not None and t0 > hi + 1e-6) or (t1 is not None and t1 < lo - 1e-6):
+                    out.append(f"captured_path.start_s: the time range [{t0}, {t1}] s lies outside the capture "
+                               f"[{lo:g}, {hi:g}] s")
+    cur = list(ids)
+    for i, e in enumerate(request.get("object_edits") or []):
+        w = f"object_edits[{i}]"
+        op, oid = e.get("op"), e.get("object_id")
+        if op in ("move", "remove") and oid not in cur:
+            out.append(f"{w}.object_id: no object {oid!r} in the scene (objects: {cur})")
+        if op == "insert":
+            if oid in cur:
+                out.append(f"{w}.object_id: {oid!r} already exists; pick a new id (objects: {cur})")
+            if e.get("source_scene_id") is None and e.get("source_object_id") not in cur:  # (another scene: the caller)
+                out.append(f"{w}.source_object_id: no object {e.get('source_object_id')!r} in the scene "
+                           f"(objects: {cur})")
+        for k, pz in enumerate(e.get("poses") or []):
+            if not 0 <= pz.get("time_index", -1) < n_times:
+                out.append(f"{w}.poses[{k}].time_index: must be in [0, {n_times - 1}] (the scene's time indices)")
+        if op == "remove" and oid in cur:
+            cur.remove(oid)
+        elif op == "insert" and oid not in cur:
+            cur.append(oid)
+    for i, lt in enumerate(request.get("lights") or []):
+        a = lt.get("attach_to")
+        if a is not None and a not in cur:
+            out.append(f"lights[{i}].attach_to: no object {a!r} in the scene (objects: {cur})")
+    for i, a in enumerate(request.get("vehicle_lights_off") or []):
+        if a not in cur:
+            out.append(f"vehicle_lights_off[{i}]: no object {a!r} in the scene (objects: {cur})")
+    return out
 
 
 @dataclass
@@ -305,26 +549,39 @@ def render_scenario(graph, scenario: Scenario, out_dir: str | Path, *,
 
     if not isinstance(scenario, Scenario):
         raise ConfigError(f"scenario: expected a Scenario, got {type(scenario).__name__}")
+    from core.render.objects import vehicle_lights
+
     g = apply_edits(graph, list(scenario.edits), what="object_edits") if scenario.edits else graph
-    lights = to_lights(scenario.lights, g)
+    lights = to_lights(scenario.lights, g) + to_lights(scenario.street_lights, g, what="street_lights")
     if scenario.headlights:
-        lights += headlights(g, scenario.headlight_intensity)
+        lights += vehicle_lights(g, headlight_cd=scenario.headlight_intensity,
+                                 tail_light_cd=scenario.tail_light_intensity, tail_lights=scenario.tail_lights,
+                                 off=scenario.vehicle_lights_off)
+    elif scenario.vehicle_lights_off:
+        vehicle_lights(g, off=scenario.vehicle_lights_off)  # still names an unknown id
     env = EnvironmentMap(np.asarray(scenario.envmap, np.float32) * scenario.sky_scale,
                          rotation_deg=scenario.rotation_deg, resample_to=(512, 1024))
     settings = PBRSettings(rays_per_pixel=scenario.rays_per_pixel,
-                           exposure=scenario.base_exposure * 2.0 ** scenario.exposure_ev, gamma=scenario.gamma,
+                           exposure=scenario.base_exposure * 2.0 ** (scenario.exposure_ev or 0.0),
+                           gamma=scenario.gamma,
                            shadows=scenario.shadows, normal_offset=scenario.normal_offset_m,
                            trace=TraceSettings(leaf_size=16, t_min=scenario.shadow_t_min_m),
                            reuse_visibility=len(scenario.views) > 1)
     res = render_clip(g, env, list(scenario.views), out_dir, settings=settings, lights=lights,
                       outputs=list(scenario.outputs), denoiser=scenario.denoiser,
-                      denoiser_fallback=scenario.denoiser_fallback, fps=scenario.fps, on_frame=on_frame)
+                      denoiser_fallback=scenario.denoiser_fallback, fps=scenario.fps, on_frame=on_frame,
+                      auto_exposure=scenario.auto_exposure if scenario.exposure_ev is None else None)
+    ev = math.log2(res.exposure / scenario.base_exposure) if res.exposure > 0 and scenario.base_exposure > 0 else None
     return ScenarioResult(res, len(scenario.views), len(lights),
                           {"frames": len(scenario.views), "seconds_per_frame": round(res.seconds_per_frame, 3),
                            "rays_per_pixel": scenario.rays_per_pixel, "denoiser": res.denoiser,
-                           "denoiser_fallback_reason": res.denoiser_note, "lights": len(lights)})
+                           "denoiser_fallback_reason": res.denoiser_note, "lights": len(lights),
+                           "exposure": "auto" if scenario.exposure_ev is None else "fixed",
+                           "exposure_ev": None if ev is None else round(ev, 3),
+                           "exposure_limited_by": res.exposure_note,
+                           "street_lights": [[round(float(x), 3) for x in lt.position] for lt in scenario.street_lights]})
 
 
-__all__ = ["LightSpec", "Scenario", "ScenarioResult", "views_from_frames", "views_from_path", "load_path_json",
-           "to_lights", "headlights", "render_scenario", "HEADLIGHT_OFFSETS", "scene_sky",
+__all__ = ["LightSpec", "Scenario", "ScenarioResult", "views_from_frames", "views_from_path", "views_from_capture", "load_path_json",
+           "to_lights", "headlights", "render_scenario", "scene_sky", "street_lights_for", "STREET_LIGHT_PLACEMENTS", "request_problems",
            "night_scenario", "FALLBACK_SKY_RADIANCE"]

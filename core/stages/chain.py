@@ -182,13 +182,30 @@ def profile_settings(profile: str, stage: str, overrides: dict | None = None):
         raise ConfigError(f"profile: unknown profile {profile!r} (profiles: {list(PROFILE_NAMES)})")
     stage_spec(stage)
     cfg = _profile_table()[profile][stage]
-    if overrides:
-        names = {f.name for f in fields(cfg)}
-        bad = sorted(set(overrides) - names)
-        if bad:
-            raise ConfigError(f"{stage} settings: unknown field(s) {bad} (fields: {sorted(names)})")
-        cfg = replace(cfg, **overrides)
-    return cfg
+    return _override(cfg, {tuple(k.split(".")): v for k, v in (overrides or {}).items()}, stage) if overrides else cfg
+
+
+def _override(cfg, items: dict[tuple[str, ...], object], what: str):
+    """``cfg`` with the fields ``items`` set (keys are paths: ``("occluders", "max_height_m")``),
+    all in one ``replace`` per settings group, so fields checked against each other
+    (``coarse_height <= env_height``) may change together in any order."""
+    names = {f.name for f in fields(cfg)}
+    direct: dict[str, object] = {}
+    nested: dict[str, dict] = {}
+    for path, value in items.items():
+        if path[0] not in names:
+            raise ConfigError(f"{what} settings: unknown field {path[0]!r} (fields: {sorted(names)})")
+        if len(path) == 1:
+            direct[path[0]] = value
+        else:
+            nested.setdefault(path[0], {})[path[1:]] = value
+    for head, sub_items in nested.items():
+        sub = direct.get(head, getattr(cfg, head))
+        if not is_dataclass(sub):
+            raise ConfigError(f"{what}.{head}: not a group of settings (no field "
+                              f"{'.'.join(next(iter(sub_items)))!r})")
+        direct[head] = _override(sub, sub_items, f"{what}.{head}")
+    return replace(cfg, **direct)
 
 
 def scale_iterations(cfg, scale: float):
@@ -219,9 +236,11 @@ def _jsonable(x):
 def write_json(path: Path, obj) -> None:
     """JSON written to a temporary name and renamed (NaN -> null: the file is always valid JSON)."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(_jsonable(obj), indent=1, allow_nan=False))
-    tmp.replace(path)
+    from core.io.atomic import atomic_output
+
+    text = json.dumps(_jsonable(obj), indent=1, allow_nan=False)
+    with atomic_output(path) as tmp:
+        Path(tmp).write_text(text)
 
 
 @dataclass

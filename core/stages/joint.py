@@ -147,7 +147,8 @@ def run_stage(ctx) -> dict:
         # shadow BVHs of the start of the stage: static once, moving nodes per frame
         static = graph._static_part().detach()
         ts = TraceSettings(leaf_size=16)
-        static_tracer = GaussianTracer.from_gaussians(static, ts) if static.num else None
+        shadow = graph.shadow_static()  # the static part plus the completed facades (core.stages.occluders)
+        static_tracer = GaussianTracer.from_gaussians(shadow, ts) if shadow.num else None
         tracers = {}
         for v in train:
             g = graph.compose(v.time).detach()

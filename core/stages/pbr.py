@@ -55,6 +55,13 @@ class PBRStageConfig:
     """Weight of the log-space prior at the last step (supplement: 0.1)."""
     env_height: int = 512
     """Rows of the optimised map (columns = 2 x rows); the outputs are resampled to 512x1024."""
+    coarse_height: int = 16
+    """Rows of a coarse log-radiance residual optimised beside the per-texel one (0 = per-texel
+    only, the paper). ``log E = log E_g + up(R_coarse) + R_fine``: a step's 2048 pixels x rays
+    reach few of the 512x1024 texels, so per texel alone the fit barely moved in 150 steps
+    (photometric PSNR 15.6 -> 16.1 dB on the default scene); every sample moves the coarse one."""
+    coarse_lr: float = 0.05
+    """Adam learning rate of the coarse residual."""
     max_frames: int = 24
     """Training frames used (evenly spaced; their G-buffers and shadow BVHs are built once)."""
     eval_pixels: int = 4096
@@ -74,6 +81,8 @@ class PBRStageConfig:
                                ("rays_per_pixel", self.rays_per_pixel >= 1), ("lr", self.lr > 0),
                                ("lambda_e_start", self.lambda_e_start >= 0), ("lambda_e_end", self.lambda_e_end >= 0),
                                ("env_height", self.env_height >= 8), ("max_frames", self.max_frames >= 1),
+                               ("coarse_height", self.coarse_height == 0 or 2 <= self.coarse_height <= self.env_height),
+                               ("coarse_lr", self.coarse_lr > 0),
                                ("eval_pixels", self.eval_pixels >= 1), ("threads", self.threads >= 1)) if not ok]
         if bad:
             raise ConfigError(f"PBRStageConfig: out of range: {', '.join(bad)} ({self})")
@@ -100,7 +109,8 @@ def _frames(graph, bundle, cfg: PBRStageConfig) -> list[_FrameData]:
     times = bundle.manifest.times
     rs = RasterSettings(threads=cfg.threads)
     static = graph._static_part().detach()
-    static_tracer = GaussianTracer.from_gaussians(static, TraceSettings(leaf_size=16)) if static.num else None
+    shadow = graph.shadow_static()  # the static part plus the completed facades (core.stages.occluders)
+    static_tracer = GaussianTracer.from_gaussians(shadow, TraceSettings(leaf_size=16)) if shadow.num else None
     out = []
     with torch.no_grad():
         for i in pick:
@@ -208,6 +218,17 @@ def fit_lighting(graph, bundle, out_dir: str | Path, cfg: PBRStageConfig | None 
     prior_t = resample(torch.from_numpy(prior_full).double(), h, 2 * h)
     env = EnvironmentMap(prior_t, log_space=True, requires_grad=True)
     log_prior = env.param.detach().clone()
+    fine = env.param  # the per-texel log-radiance residual is the map's own leaf
+    hc = cfg.coarse_height
+    coarse = torch.zeros(hc, 2 * hc, 3, dtype=log_prior.dtype, requires_grad=True) if hc else None
+
+    def compose() -> None:
+        """Set the map's log radiance to ``fine + up(coarse)`` (a graph node when coarse is on)."""
+        if coarse is None:
+            return
+        up = torch.nn.functional.interpolate(coarse.permute(2, 0, 1)[None], size=(h, 2 * h), mode="bilinear",
+                                             align_corners=False)[0].permute(1, 2, 0)
+        env.param = fine + up
     m = bundle.manifest
     ps = PBRSettings(backend="torch", rays_per_pixel=cfg.rays_per_pixel, exposure=m.ldr_exposure,
                      gamma=m.ldr_gamma, threads=cfg.threads, seed=cfg.seed)
@@ -230,7 +251,8 @@ def fit_lighting(graph, bundle, out_dir: str | Path, cfg: PBRStageConfig | None 
         return _psnr(torch.cat(preds), torch.cat(tgts))
 
     psnr_before = evaluate(env)
-    opt = torch.optim.Adam([env.param], lr=cfg.lr)
+    groups = [{"params": [fine], "lr": cfg.lr}] + ([{"params": [coarse], "lr": cfg.coarse_lr}] if hc else [])
+    opt = torch.optim.Adam(groups)
     history = []
     usable = [i for i, f in enumerate(frames) if f.nonsky.numel()]
     start = 0
@@ -241,7 +263,9 @@ def fit_lighting(graph, bundle, out_dir: str | Path, cfg: PBRStageConfig | None 
         except Exception as exc:  # noqa: BLE001 - a corrupt state is reported, never silently reset
             raise FormatError(f"{state_file}: unreadable PBR-stage state ({exc})") from exc
         with torch.no_grad():
-            env.param.copy_(st["env"])
+            fine.copy_(st["fine"] if "fine" in st else st["env"])
+            if coarse is not None and "coarse" in st:
+                coarse.copy_(st["coarse"])
         opt.load_state_dict(st["opt"])
         gen.set_state(st["gen"])
         history, start = st["history"], int(st["iteration"])
@@ -251,6 +275,7 @@ def fit_lighting(graph, bundle, out_dir: str | Path, cfg: PBRStageConfig | None 
         idx = f.nonsky[torch.randperm(n, generator=gen)[:min(cfg.pixels, n)]]
         frac = it / max(cfg.iterations - 1, 1)
         lam = cfg.lambda_e_start + (cfg.lambda_e_end - cfg.lambda_e_start) * frac
+        compose()
         env.rebuild_sampler()
         pred = _render(f, env, ps, idx, gen)
         photo = (pred - f.target[idx].to(pred.dtype)).abs().mean()
@@ -267,12 +292,17 @@ def fit_lighting(graph, bundle, out_dir: str | Path, cfg: PBRStageConfig | None 
         history.append(rec)
         if state_file is not None and checkpoint_every and (it + 1) % checkpoint_every == 0:
             state_file.parent.mkdir(parents=True, exist_ok=True)
-            tmp = state_file.with_name("state.pt.tmp")
-            torch.save({"iteration": it + 1, "env": env.param.detach().clone(), "opt": opt.state_dict(),
-                        "gen": gen.get_state(), "history": history}, tmp)
-            tmp.replace(state_file)
+            from core.io.atomic import atomic_output
+
+            with atomic_output(state_file) as tmp:
+                torch.save({"iteration": it + 1, "env": env.param.detach().clone(), "fine": fine.detach().clone(),
+                            **({"coarse": coarse.detach().clone()} if coarse is not None else {}),
+                            "opt": opt.state_dict(), "gen": gen.get_state(), "history": history}, tmp)
         if on_progress is not None:
             on_progress(it + 1, cfg.iterations, rec)
+    with torch.no_grad():
+        compose()
+        env.param = env.param.detach()
     env.rebuild_sampler()
     with torch.no_grad():
         fitted = env.radiance_map().detach()

@@ -61,9 +61,10 @@ class GBufferPriors:
         p.parent.mkdir(parents=True, exist_ok=True)
         arrays = {f"{fid}/{k}": v.astype(np.float32) for fid, d in self.layers.items() for k, v in d.items()}
         arrays["__meta__"] = np.array(json.dumps({"source": self.source, **(meta or {})}))
-        tmp = p.with_name(p.name + ".tmp.npz")
-        np.savez_compressed(tmp, **arrays)
-        tmp.replace(p)
+        from core.io.atomic import atomic_output
+
+        with atomic_output(p, suffix=".npz") as tmp:  # savez appends .npz to a name without it
+            np.savez_compressed(tmp, **arrays)
 
     @classmethod
     def load(cls, path: str | Path) -> tuple["GBufferPriors", dict]:

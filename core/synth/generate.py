@@ -18,6 +18,7 @@ import numpy as np
 from core.bundle import BundleWriter, Camera
 from core.io.hdri import HDRI_DIR, column_shift, load_hdri, resolve_hdri, rotate_equirect  # noqa: F401
 from core.synth.config import SynthConfig
+from core.synth.randomise import SUNSKY, lens_k1
 from core.synth.street import EGO_LANE_Y, make_street
 
 # The bundled HDRI library lives in core.io.hdri; these names are kept for the generator's callers.
@@ -44,7 +45,23 @@ def camera_pose(cfg: SynthConfig, x: float, y: float) -> np.ndarray:
 
 def intrinsics(cfg: SynthConfig) -> Camera:
     fx = cfg.width / 2.0 / math.tan(math.radians(cfg.hfov_deg) / 2.0)
-    return Camera("front", cfg.width, cfg.height, fx, fx, cfg.width / 2.0, cfg.height / 2.0)
+    k1 = _k1(cfg)
+    return Camera("front", cfg.width, cfg.height, fx, fx, cfg.width / 2.0, cfg.height / 2.0,
+                  (k1, 0.0, 0.0, 0.0, 0.0) if k1 else ())
+
+
+def _k1(cfg: SynthConfig) -> float:
+    spec = cfg.scene_spec
+    return lens_k1(spec.edge_distortion, cfg.hfov_deg, cfg.width, cfg.height) if spec is not None else 0.0
+
+
+def ego_lane_y(cfg: SynthConfig) -> float:
+    """y of the train trajectory: the fixed generator's ego lane, or the randomised street's."""
+    if cfg.scene_spec is None:
+        return EGO_LANE_Y
+    from core.synth.random_street import ego_lane_y as _y
+
+    return _y(cfg.scene_spec)
 
 
 # --------------------------------------------------------------------------------------------
@@ -56,14 +73,30 @@ _CACHE: dict = {}
 def _street(cfg: SynthConfig):
     key = ("street", cfg)
     if key not in _CACHE:
-        _CACHE[key] = make_street(cfg, ego_positions(cfg))
+        if cfg.scene_spec is None:
+            _CACHE[key] = make_street(cfg, ego_positions(cfg))
+        else:
+            from core.synth.random_street import make_random_street
+
+            _CACHE[key] = make_random_street(cfg.scene_spec, ego_positions(cfg), cfg.street_length_m,
+                                             cfg.frame_dt, cfg.ego_speed)
     return _CACHE[key]
 
 
-def _env(name: str, rot: float) -> np.ndarray:
-    key = ("env", name, rot)
+def _env(name: str, rot: float, spec=None) -> np.ndarray:
+    """A bundled HDRI / file rotated, or (randomised scenes) the training light of ``spec``:
+    the analytic sun-and-sky map (``name == "sunsky"``) or the HDRI, times the spec's intensity."""
+    key = ("env", name, rot, spec)
     if key not in _CACHE:
-        _CACHE[key] = load_envmap(name, rot)
+        if spec is not None and name == SUNSKY:
+            from core.synth.sky import sun_sky_map
+
+            _CACHE[key] = sun_sky_map(spec.sun_elevation_deg, spec.sun_azimuth_deg, spec.turbidity,
+                                      height=512, intensity=spec.intensity)
+        elif spec is not None:
+            _CACHE[key] = (load_envmap(name, rot) * np.float32(spec.intensity)).astype(np.float32)
+        else:
+            _CACHE[key] = load_envmap(name, rot)
     return _CACHE[key]
 
 
@@ -72,11 +105,26 @@ def _render_job(job: tuple) -> tuple:
 
     kind, key, cfg, t, c2w, env_name, env_rot, seed = job
     cam_i = intrinsics(cfg)
-    cam = PinholeCamera(c2w, cam_i.fx, cam_i.fy, cam_i.cx, cam_i.cy, cfg.width, cfg.height)
+    k1 = _k1(cfg)
+    if k1:  # render a pinhole canvas covering the lens's field, then warp (core.synth.sensor)
+        from core.synth.sensor import source_coords
+
+        us, vs, px, py = source_coords(cfg.width, cfg.height, cam_i.fx, k1)
+        W, H = cfg.width + 2 * px, cfg.height + 2 * py
+        cam = PinholeCamera(c2w, cam_i.fx, cam_i.fy, W / 2.0, H / 2.0, W, H)
+    else:
+        cam = PinholeCamera(c2w, cam_i.fx, cam_i.fy, cam_i.cx, cam_i.cy, cfg.width, cfg.height)
     parts = _street(cfg).parts_at(t)
-    if kind == "gbuffer":
-        return kind, key, render_gbuffers(parts, cam)
-    img = render_beauty(parts, _env(env_name, env_rot), cam, spp=cfg.spp, max_depth=cfg.max_depth, seed=seed)
+    if kind == "gbuffer":  # distorted: one ray per output pixel, exactly along its lens ray
+        film_uv = np.stack([us / cam.width, vs / cam.height], -1) if k1 else None
+        return kind, key, render_gbuffers(parts, cam, film_uv)
+    spp = (cfg.relight_spp or 4 * cfg.spp) if kind.startswith("relit:") else cfg.spp
+    spec = cfg.scene_spec if kind == "beauty" else None  # relit maps: the plain HDRIs
+    img = render_beauty(parts, _env(env_name, env_rot, spec), cam, spp=spp, max_depth=cfg.max_depth, seed=seed)
+    if k1:
+        from core.synth.sensor import warp_bilinear
+
+        img = np.maximum(warp_bilinear(img, us, vs), 0.0)
     return kind, key, img
 
 
@@ -90,7 +138,7 @@ def simulate_lidar(cfg: SynthConfig, t: int, x: float) -> np.ndarray:
     az = np.linspace(0.0, 2 * math.pi, cfg.lidar_azimuth_steps, endpoint=False)
     E, A = np.meshgrid(elev, az, indexing="ij")
     d = np.stack([np.cos(E) * np.cos(A), np.cos(E) * np.sin(A), np.sin(E)], -1).reshape(-1, 3)
-    o = np.tile([x, EGO_LANE_Y, cfg.lidar_height_m], (len(d), 1))
+    o = np.tile([x, ego_lane_y(cfg), cfg.lidar_height_m], (len(d), 1))
     dist = RayCaster(_street(cfg).parts_at(t)).cast(o, d, cfg.lidar_range_m)
     ok = np.isfinite(dist)
     pts = o[ok] + d[ok] * dist[ok, None]
@@ -109,15 +157,16 @@ def generate_scene(cfg: SynthConfig, out_dir: str | Path, *, name: str | None = 
     from core.tonemap import hdr_to_ldr, ldr_to_uint8
 
     name = name or f"street_seed{cfg.seed}"
-    env_train = _env(cfg.envmap, cfg.envmap_rotation_deg)  # fail early on a bad envmap name
+    spec = cfg.scene_spec
+    env_train = _env(cfg.envmap, cfg.envmap_rotation_deg, spec)  # fail early on a bad envmap name
     for n in cfg.relight_envmaps:
         _env(n, 0.0)  # fail early on a bad envmap name
     ego_x = ego_positions(cfg)
     frames = []  # (frame_id, split, t, c2w)
     for t, x in enumerate(ego_x):
-        frames.append((f"train_{t:03d}", "train", t, camera_pose(cfg, x, EGO_LANE_Y)))
+        frames.append((f"train_{t:03d}", "train", t, camera_pose(cfg, x, ego_lane_y(cfg))))
     for t, x in enumerate(ego_x):
-        frames.append((f"test_{t:03d}", "test", t, camera_pose(cfg, x, EGO_LANE_Y + cfg.test_offset_m)))
+        frames.append((f"test_{t:03d}", "test", t, camera_pose(cfg, x, ego_lane_y(cfg) + cfg.test_offset_m)))
 
     jobs = []
     for i, (fid, split, t, c2w) in enumerate(frames):
@@ -150,38 +199,72 @@ def generate_scene(cfg: SynthConfig, out_dir: str | Path, *, name: str | None = 
         bar.update()
     bar.close()
 
-    # exposure: the configured one, so the LDR frames of all scenes share one tone map
+    # exposure: the configured one, so the LDR frames of all scenes share one tone map;
+    # randomised scenes: auto exposure on the first train frame, offset by the spec's stops
     exposure, gamma = cfg.exposure, cfg.gamma
+    if spec is not None:
+        from core.synth.sensor import auto_exposure
+
+        exposure = round(auto_exposure(results[("beauty", frames[0][0])], spec.exposure_ev), 6)
     cam = intrinsics(cfg)
     street = _street(cfg)
+    config = asdict(cfg)
+    if spec is None:
+        config.pop("scene_spec")  # the profiles' manifests stay as they were
     w = BundleWriter(out_dir, name, overwrite=overwrite,
                      description=f"Synthetic street (seed {cfg.seed}) rendered by Mitsuba 3 under {cfg.envmap}",
-                     source={"kind": "synthetic", "generator": "core.synth", "config": _jsonable(asdict(cfg))},
+                     source={"kind": "synthetic", "generator": "core.synth", "config": _jsonable(config)},
                      ldr_exposure=exposure, ldr_gamma=gamma)
+    tmp = None
+    if spec is not None:
+        import tempfile
+
+        tmp = tempfile.TemporaryDirectory(prefix="brdf-synth-")
+        noise_rng = np.random.default_rng([spec.seed, 11])
     with w:
         w.set_times([t * cfg.frame_dt for t in range(cfg.num_frames)])
         w.add_camera(cam)
         for fid, split, t, c2w in frames:
             g = results[("gbuffer", fid)]
             hdr = results[("beauty", fid)]
-            ldr = ldr_to_uint8(hdr_to_ldr(hdr, exposure, gamma))
             gt = {"rgb": hdr, "albedo": g["albedo"], "roughness": g["roughness"], "metallic": g["metallic"],
                   "normal": g["normal"], "depth": g["depth"]}
-            w.add_frame(fid, cam.id, t, c2w, image=ldr, split=split, sky_mask=g["sky"], ground_truth=gt)
+            if spec is None:
+                ldr = ldr_to_uint8(hdr_to_ldr(hdr, exposure, gamma))
+                w.add_frame(fid, cam.id, t, c2w, image=ldr, split=split, sky_mask=g["sky"], ground_truth=gt)
+                continue
+            from core.synth.sensor import apply_sensor
+
+            ldr = apply_sensor(hdr, exposure, gamma, spec.contrast, spec.shot_noise, spec.read_noise, noise_rng)
+            if spec.jpeg_quality:
+                from PIL import Image
+
+                jpg = Path(tmp.name) / f"{fid}.jpg"
+                Image.fromarray(ldr).save(jpg, quality=int(spec.jpeg_quality))
+                w.add_frame(fid, cam.id, t, c2w, image_file=jpg, split=split, sky_mask=g["sky"], ground_truth=gt)
+            else:
+                w.add_frame(fid, cam.id, t, c2w, image=ldr, split=split, sky_mask=g["sky"], ground_truth=gt)
         for t, pts in enumerate(lidar):
             w.add_lidar(t, pts)
         for car in street.cars:
             w.add_object(car.id, "car", car.size, car.poses)
-        env_name_train = resolve_envmap(cfg.envmap).stem
-        if column_shift(env_train, cfg.envmap_rotation_deg) == 0:  # unrotated: copy the file
+        if spec is not None:  # the analytic sky or an HDRI times the intensity: write the array
+            env_name_train = SUNSKY if cfg.envmap == SUNSKY else resolve_envmap(cfg.envmap).stem
+            w.set_ground_truth_envmap(env_train, env_name_train, cfg.envmap_rotation_deg)
+        elif column_shift(env_train, cfg.envmap_rotation_deg) == 0:  # unrotated: copy the file
+            env_name_train = resolve_envmap(cfg.envmap).stem
             w.set_ground_truth_envmap(None, env_name_train, 0.0, envmap_file=resolve_envmap(cfg.envmap))
         else:
+            env_name_train = resolve_envmap(cfg.envmap).stem
             w.set_ground_truth_envmap(env_train, env_name_train, cfg.envmap_rotation_deg)
         for env_name in cfg.relight_envmaps:
             w.add_relit(resolve_envmap(env_name).stem, None,
                         {fid: results[("relit:" + env_name, fid)] for fid, *_ in test_frames},
                         envmap_file=resolve_envmap(env_name))
-        return w.finish()
+        root = w.finish()
+    if tmp is not None:
+        tmp.cleanup()
+    return root
 
 
 def _jsonable(d):

@@ -48,14 +48,33 @@ class PinholeCamera:
     height: int
 
 
+_TEXTURES: dict = {}
+
+
+def albedo_texture(tex):
+    """The Mitsuba ``bitmap`` texture (linear, bilinear, repeating) of a procedural
+    :class:`core.synth.textures.AlbedoTexture`; one object per texture and process, shared by the
+    BSDF and the albedo G-buffer."""
+    from core.synth.textures import texture_image
+
+    if tex not in _TEXTURES:
+        mi = mitsuba()
+        if len(_TEXTURES) > 512:
+            _TEXTURES.clear()
+        _TEXTURES[tex] = mi.load_dict({"type": "bitmap", "bitmap": mi.Bitmap(texture_image(tex)), "raw": True,
+                                       "filter_type": "bilinear", "wrap_mode": "repeat"})
+    return _TEXTURES[tex]
+
+
 def _bsdf(mat: Material) -> dict:
+    colour = albedo_texture(mat.texture) if mat.texture is not None else {"type": "rgb", "value": list(mat.albedo)}
     if mat.model == "lambert":
-        return {"type": "diffuse", "reflectance": {"type": "rgb", "value": list(mat.albedo)}}
+        return {"type": "diffuse", "reflectance": colour}
     if mat.model != "principled":
         raise ConfigError(f"material.model: unknown model {mat.model!r}")
     return {
         "type": "principled",
-        "base_color": {"type": "rgb", "value": list(mat.albedo)},
+        "base_color": colour,
         "roughness": float(mat.roughness),
         "metallic": float(mat.metallic),
         "specular": 0.5,  # F0 = 0.08 * specular = 0.04 for dielectrics, as the paper's BRDF
@@ -68,11 +87,19 @@ def _mesh(part: Part):
     f = np.ascontiguousarray(part.faces, np.uint32)
     if v.ndim != 2 or v.shape[1] != 3 or f.ndim != 2 or f.shape[1] != 3:
         raise ShapeError(f"part {part.name}: vertices must be [V, 3] and faces [F, 3]")
+    has_uv = part.uvs is not None
+    if part.material.texture is not None and not has_uv:
+        raise ConfigError(f"part {part.name}: a textured material needs uvs")
+    if has_uv and np.shape(part.uvs) != (len(v), 2):
+        raise ShapeError(f"part {part.name}: uvs must be [V, 2], got {list(np.shape(part.uvs))}")
     m = mi.Mesh(part.name, vertex_count=len(v), face_count=len(f), has_vertex_normals=False,
-                has_vertex_texcoords=False, props=_props_with_bsdf(part.material))
+                has_vertex_texcoords=has_uv, props=_props_with_bsdf(part.material))
     params = mi.traverse(m)
     params["vertex_positions"] = type(params["vertex_positions"])(v.ravel())
     params["faces"] = type(params["faces"])(f.ravel())
+    if has_uv:
+        params["vertex_texcoords"] = type(params["vertex_texcoords"])(
+            np.ascontiguousarray(part.uvs, np.float32).ravel())
     params.update()
     return m
 
@@ -148,8 +175,12 @@ def render_beauty(parts: list[Part], env: np.ndarray, cam: PinholeCamera, *, spp
     return np.maximum(img, 0.0)
 
 
-def render_gbuffers(parts: list[Part], cam: PinholeCamera) -> dict[str, np.ndarray]:
+def render_gbuffers(parts: list[Part], cam: PinholeCamera, film_uv: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """Ground-truth G-buffers sampled at pixel centres (one Mitsuba camera ray per pixel).
+
+    ``film_uv`` [H', W', 2] (optional): sample these film positions of ``cam`` instead, as
+    fractions (column, row) of its width and height in [0, 1]; the maps are then [H', W', ...]
+    (a distorted lens's pixels, exactly on their rays: see core/synth/sensor.py).
 
     Returns albedo [H, W, 3], roughness [H, W, 1], metallic [H, W, 1], normal [H, W, 3] (world,
     unit, facing the camera), depth [H, W, 1] (camera z-depth, metres; 0 on sky), sky [H, W] bool.
@@ -164,7 +195,13 @@ def render_gbuffers(parts: list[Part], cam: PinholeCamera) -> dict[str, np.ndarr
     by_id = {}
     for p_ in parts:
         by_id["shape_" + p_.name.replace("/", "__")] = p_.material
-    H, W = cam.height, cam.width
+    if film_uv is None:
+        H, W = cam.height, cam.width
+        film_uv = np.stack(np.meshgrid((np.arange(W) + 0.5) / W, (np.arange(H) + 0.5) / H), -1)
+    film_uv = np.asarray(film_uv, np.float64)
+    if film_uv.ndim != 3 or film_uv.shape[2] != 2:
+        raise ShapeError(f"film_uv: expected [H, W, 2], got {list(film_uv.shape)}")
+    H, W = film_uv.shape[:2]
     hit = np.zeros((H, W), bool)
     n = np.zeros((H, W, 3))
     p = np.zeros((H, W, 3))
@@ -173,9 +210,8 @@ def render_gbuffers(parts: list[Part], cam: PinholeCamera) -> dict[str, np.ndarr
     metal = np.zeros((H, W))
     ap = mi.Point2f(0.5, 0.5)
     for r in range(H):
-        fy = (r + 0.5) / H
         for c in range(W):
-            ray, _ = sensor.sample_ray(0.0, 0.5, mi.Point2f((c + 0.5) / W, fy), ap)
+            ray, _ = sensor.sample_ray(0.0, 0.5, mi.Point2f(float(film_uv[r, c, 0]), float(film_uv[r, c, 1])), ap)
             si = scene.ray_intersect(ray)
             if not si.is_valid():
                 continue
@@ -183,7 +219,7 @@ def render_gbuffers(parts: list[Part], cam: PinholeCamera) -> dict[str, np.ndarr
             hit[r, c] = True
             n[r, c] = si.sh_frame.n
             p[r, c] = si.p
-            albedo[r, c] = mat.albedo
+            albedo[r, c] = mat.albedo if mat.texture is None else albedo_texture(mat.texture).eval(si)
             rough[r, c] = 1.0 if mat.model == "lambert" else mat.roughness
             metal[r, c] = 0.0 if mat.model == "lambert" else mat.metallic
     c2w = np.asarray(cam.cam_to_world, np.float64)

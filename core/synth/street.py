@@ -31,13 +31,16 @@ class Material:
 
     ``model`` is ``"principled"`` (Mitsuba's principled BSDF, GGX with alpha = roughness^2,
     specular 0.5 = F0 0.04 for dielectrics) or ``"lambert"`` (pure diffuse; roughness 1, metallic 0
-    in the G-buffers)."""
+    in the G-buffers). ``texture`` (randomised streets only): a procedural albedo texture
+    (:class:`core.synth.textures.AlbedoTexture`) that replaces the flat ``albedo`` (then its mean
+    colour); the part needs ``uvs``."""
 
     name: str
     albedo: tuple[float, float, float]
     roughness: float
     metallic: float
     model: str = "principled"
+    texture: object = None
 
 
 @dataclass
@@ -48,6 +51,8 @@ class Part:
     vertices: np.ndarray
     faces: np.ndarray
     material: Material
+    uvs: np.ndarray | None = None
+    """Texture coordinates [V, 2] (textured materials only)."""
 
 
 @dataclass
@@ -74,7 +79,7 @@ class StreetScene:
             pose = car.poses[time_index]
             for p in car.parts:
                 v, f = geo.transform((p.vertices, p.faces), pose)
-                out.append(Part(f"{car.id}/{p.name}", v, f, p.material))
+                out.append(Part(f"{car.id}/{p.name}", v, f, p.material, p.uvs))
         return out
 
     def materials(self) -> dict[str, Material]:

@@ -105,13 +105,36 @@ def test_camera_path_poses_must_be_rigid():
 
 
 def test_frames_and_camera_path_are_exclusive_and_outputs_unique():
-    with pytest.raises(ValidationError, match="not both"):
+    with pytest.raises(ValidationError, match="one of frames, camera_path or captured_path"):
         S.NightRequest.model_validate({"frames": {}, "camera_path": {
             "camera": "front", "poses": [{"cam_to_world": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]}]}})
+    with pytest.raises(ValidationError, match="one of frames, camera_path or captured_path"):
+        S.RelightRequest.model_validate({"envmap_name": "city", "frames": {}, "captured_path": {}})
+    with pytest.raises(ValidationError, match="must not be before start_s"):
+        S.CapturedPath.model_validate({"start_s": 2.0, "stop_s": 1.0})
+    with pytest.raises(ValidationError, match="lateral_shift_m"):
+        S.CapturedPath.model_validate({"lateral_shift_m": 1e9})
     with pytest.raises(ValidationError, match="at most once"):
         S.RenderRequest.model_validate({"outputs": ["exr", "exr"]})
     with pytest.raises(ValidationError, match="greater than start"):
         S.FrameRange.model_validate({"start": 5, "stop": 5})
+
+
+def test_night_and_exposure_defaults_and_trajectory_edit_rules():
+    n = S.NightRequest()
+    assert n.exposure_ev is None and S.RelightRequest(envmap_name="city").exposure_ev is None  # automatic
+    assert n.street_lights and n.street_light_placement == "detect" and n.street_light_intensity == 2000.0
+    with pytest.raises(ValidationError, match="street_light_positions"):
+        S.NightRequest.model_validate({"street_light_positions": [[1.0]]})
+    with pytest.raises(ValidationError, match="not allowed for remove"):
+        S.ObjectEdit.model_validate({"op": "remove", "object_id": "car0", "speed": 2.0})
+    eye = [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]
+    with pytest.raises(ValidationError, match="appears twice"):
+        S.ObjectEdit.model_validate({"op": "move", "object_id": "car0", "poses": [
+            {"time_index": 1, "obj_to_world": eye}, {"time_index": 1, "obj_to_world": eye}]})
+    with pytest.raises(ValidationError, match="obj_to_world"):
+        S.ObjectEdit.model_validate({"op": "move", "object_id": "car0", "poses": [
+            {"time_index": 1, "obj_to_world": [[2, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]}]})
 
 
 def test_object_edit_rules():

@@ -113,3 +113,12 @@ def test_demo_writes_the_sheet_outputs_and_metrics(tiny_scene, tmp_path, capsys)
     assert sheet.shape[1] > 6 * 48  # input, novel view, albedo, normal, roughness, relit, ground truth
     assert main(["relight", str(out / "run"), "--envmap", "nope", "--out", str(tmp_path / "x")]) == 2
     assert "nope" in capsys.readouterr().err
+
+
+def test_stage_line_never_prints_nan():
+    """A stage without test frames has no held-out PSNR: the line says so instead of 'nan dB'."""
+    from core.cli import _stage_line
+
+    line = _stage_line("volume", {"seconds": 3.0, "test_psnr": float("nan"), "gaussians": 100})
+    assert "held-out PSNR: not measured" in line and "nan" not in line and "100 Gaussians" in line
+    assert "held-out PSNR 21.23 dB" in _stage_line("volume", {"seconds": 3.0, "test_psnr": 21.234})

@@ -41,7 +41,7 @@ def test_edits_move_remove_insert_and_errors(scene):
     np.testing.assert_allclose((p1[:, :3, 3] - p0[:, :3, 3]).numpy(), [[0, 2, 0], [0, 2, 0]], atol=1e-12)
     np.testing.assert_allclose(p1[0, :3, 0].numpy(), [0, 1, 0], atol=1e-12)  # x axis yawed to +y
     assert torch.equal(graph.node("car0").poses, p0)  # the input is untouched
-    ins = apply_edits(graph, [ObjectEdit("insert", "car9", "car0", (0.0, -3.0, 0.0))])
+    ins = apply_edits(graph, [ObjectEdit("insert", "car9", "car0", (0.0, -3.0, 0.0), solid=False)])
     assert [n.name for n in ins.nodes] == ["car0", "car9"]
     assert ins.compose(0.0).num == graph.compose(0.0).num + graph.node("car0").gaussians.num
     gone = apply_edits(graph, [ObjectEdit("remove", "car0")])

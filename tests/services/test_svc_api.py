@@ -63,7 +63,7 @@ def test_health_ready_and_openapi(client):
     assert client.get("/healthz").json()["status"] == "ok"
     r = client.get("/readyz")
     assert r.status_code == 200 and r.json() == {"ready": True, "checks": {
-        "database": "ok", "redis": "ok", "artifact_store": "ok"}}
+        "database": "ok", "redis": "ok", "artifact_store": "ok", "workers": "ok"}}
     doc = client.get("/openapi.json").json()
     for path in ("/scenes", "/scenes/{scene_id}/relight", "/scenes/{scene_id}/night", "/envmaps", "/jobs/{job_id}",
                  "/jobs/{job_id}/artifacts/{name}", "/metrics"):

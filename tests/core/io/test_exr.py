@@ -213,6 +213,34 @@ def test_truncated_file(tmp_path):
         assert str(bad) in str(info.value)
 
 
+@pytest.mark.parametrize("compression", ["zip", "none", "piz"])
+def test_garbled_pixel_data_says_what_and_where(tmp_path, compression):
+    """A truncated or garbled file names the chunk and byte that are wrong (the OpenEXR binding
+    alone says "file has 0 parts"); damage inside a chunk's compressed data is named as such."""
+    good = tmp_path / "good.exr"
+    write_exr(good, _layers(h=64, w=64), precision="float", compression=compression)
+    data = good.read_bytes()
+    head = exr_header(good)
+    table_end = head.table_offset + 8 * (-(-64 // {"zip": 16, "none": 1, "piz": 32}[compression]))
+    rng = np.random.default_rng(0)
+    cases = {"cut": (data[:table_end + (len(data) - table_end) // 2], r"truncated (or corrupt )?EXR: scanline chunk \d+ of \d+"),
+             "table": (data[:table_end - 3], r"truncated EXR: the table of \d+ chunk offsets ends at byte"),
+             "leaders": (data[:table_end] + rng.integers(0, 256, len(data) - table_end, dtype=np.uint8).tobytes(),
+                         r"corrupt EXR: scanline chunk 0 of \d+ \(lines 0...\) at byte \d+ is labelled line")}
+    if compression == "zip":  # zlib data carries a checksum: damage inside a chunk is detected
+        first = struct.unpack("<Q", data[head.table_offset:head.table_offset + 8])[0]
+        body = bytearray(data)
+        body[first + 8:first + 8 + 64] = b"\xff" * 64
+        cases["inside"] = (bytes(body), r"corrupt EXR pixel data: the OpenEXR library could not decode part 0 "
+                                        rf"\(64x64, {compression} compression\)")
+    for name, (payload, msg) in cases.items():
+        bad = tmp_path / f"{name}.exr"
+        bad.write_bytes(payload)
+        with pytest.raises(FormatError, match=msg) as info:
+            read_exr(bad)
+        assert str(bad) in str(info.value) and "0 parts" not in str(info.value), (name, info.value)
+
+
 @pytest.mark.parametrize("payload", [b"", b"not an exr file at all", b"\x89PNG\r\n\x1a\n" * 8])
 def test_not_exr(tmp_path, payload):
     p = tmp_path / "junk.exr"

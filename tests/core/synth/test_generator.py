@@ -118,3 +118,21 @@ def test_bad_settings_are_named():
         profile("huge")
     with pytest.raises(ConfigError, match="envmap"):
         generate_scene(profile("tiny", envmap="no_such_sky"), "/tmp/never_written", progress=False)
+
+
+def test_relit_references_get_more_samples_than_the_inputs(monkeypatch):
+    """Relit frames are references: 4 x spp by default (their noise would cap the score of a
+    perfect render), ``relight_spp`` when set; the input frames keep ``spp``."""
+    import core.synth.generate as gen
+    import core.synth.mitsuba_backend as mb
+
+    seen = []
+    monkeypatch.setattr(mb, "render_beauty", lambda parts, env, cam, *, spp, max_depth, seed: seen.append(spp) or np.zeros((2, 2, 3)))
+    cfg = profile("tiny", spp=8)
+    c2w = gen.camera_pose(cfg, 0.0, 0.0)
+    gen._render_job(("beauty", "train_000", cfg, 0, c2w, "city", 0.0, 0))
+    gen._render_job(("relit:sunset", "test_000", cfg, 0, c2w, "sunset", 0.0, 0))
+    gen._render_job(("relit:sunset", "test_000", profile("tiny", spp=8, relight_spp=100), 0, c2w, "sunset", 0.0, 0))
+    assert seen == [8, 32, 100]
+    with pytest.raises(ConfigError, match="relight_spp"):
+        profile("tiny", relight_spp=-1)

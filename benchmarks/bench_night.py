@@ -1,0 +1,220 @@
+"""Night and lights on a reconstruction, measured (issue "night, lights and edits").
+
+For a reconstruction run (``brdf reconstruct --out RUN``) of a synthetic bundle:
+
+* exposure: the night clip at the request defaults (automatic exposure, detected street lamps,
+  vehicle lights), per frame the share of pixels at 255 and at 0; the same with the old defaults
+  (EV +2, no street lights) beside it;
+* street lamps: the poles detected in the bundle's LiDAR against the generator's pole geometry
+  (rebuilt from the bundle's recorded config), and how much brighter the road is under each lamp
+  than 8-12 m away from it (lamps alone, no sky);
+* headlights: every headlight of every moving vehicle rendered alone on every frame of the clip
+  (train and test views): in the frames where its lit road shows (radiance > 5% of the frame's
+  maximum; a car driving away hides most of it), the share of those pixels in front of its car;
+* removal: every moving car removed; in every frame where it showed, the share of its former
+  pixels looking down at the street's ground (view ray below -2 deg: the ground lies within
+  ~50 m there, never sky) that now show background (opacity > 0.5) rather than sky, and the
+  pixels still inside its box;
+* the README's spot-light example: pixels of the relit clip that change by more than 2/255 with
+  the light on.
+
+    python benchmarks/bench_night.py RUN --out benchmarks/results/night.json [--rays 16]
+
+Reads the generator's geometry for the poles (a benchmark, never the product path).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+
+def clip_stats(frames) -> dict:
+    u8 = np.round(np.asarray(frames) * 255).max(-1)
+    at255 = [float((f >= 255).mean()) for f in u8]
+    at0 = [float((f <= 0).mean()) for f in u8]
+    return {"max_share_at_255": round(max(at255), 4), "max_share_at_0": round(max(at0), 4),
+            "mean_ldr": round(float(np.asarray(frames).mean() * 255), 1)}
+
+
+def world_points(view, depth):
+    from core.conventions import camera_ray_directions
+
+    cam = view.camera
+    d = camera_ray_directions(cam.cam_to_world, cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height).reshape(-1, 3)
+    c2w = np.asarray(cam.cam_to_world)
+    z = depth.reshape(-1)
+    return c2w[:3, 3] + d * (z / (d @ c2w[:3, 2]))[:, None], z > 0
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("run")
+    ap.add_argument("--out", default=str(REPO / "benchmarks" / "results" / "night.json"))
+    ap.add_argument("--rays", type=int, default=16)
+    a = ap.parse_args()
+
+    from core.bundle import open_bundle
+    from core.io.hdri import load_hdri
+    from core.pbr.envmap import EnvironmentMap
+    from core.pbr.render import ClipRenderer, PBRSettings
+    from core.render.objects import attach_sizes, describe_objects, vehicle_lights
+    from core.render.scenario import (LightSpec, Scenario, night_scenario, render_scenario, street_lights_for,
+                                      to_lights, views_from_frames)
+    from core.stages.chain import RunDir
+
+    run = RunDir(a.run)
+    b = open_bundle(run.scene_path(), validate=False)
+    graph, _sky, stage = run.load_scene()
+    attach_sizes(graph, b.manifest)
+    m = b.manifest
+    views = tuple(views_from_frames(b, "test"))
+    common = dict(views=views, base_exposure=m.ldr_exposure, gamma=m.ldr_gamma, rays_per_pixel=a.rays)
+    res: dict = {"run": str(a.run), "graph_stage": stage, "frames": len(views), "rays_per_pixel": a.rays}
+    t0 = time.perf_counter()
+    with tempfile.TemporaryDirectory() as tmp:
+        sc, note = night_scenario(run, graph=graph, bundle=b, **common)
+        r = render_scenario(graph, sc, Path(tmp) / "n")
+        res["night_defaults"] = {**clip_stats(r.result.frames), "exposure_ev": r.metrics["exposure_ev"],
+                                 "limited_by": r.metrics["exposure_limited_by"], "lights": r.metrics["lights"],
+                                 "street_lights": len(sc.street_lights), "note": note}
+        old, _ = night_scenario(run, graph=graph, bundle=b, exposure_ev=2.0, street_lights=False, **common)
+        r = render_scenario(graph, old, Path(tmp) / "o")
+        res["night_old_defaults_ev2_no_lamps"] = clip_stats(r.result.frames)
+
+    # street lamps: detection against the generator's poles
+    specs, lamps, note = street_lights_for(b, graph)
+    src = m.source.get("config") if isinstance(m.source, dict) else None
+    if src:
+        from core.synth import profile
+        from core.synth.generate import ego_positions
+        from core.synth.street import make_street
+
+        cfg = profile("quick", **{k: tuple(v) if isinstance(v, list) else v for k, v in src.items()})
+        poles = [np.asarray(p.vertices) for p in make_street(cfg, ego_positions(cfg)).static_parts
+                 if p.name.startswith("pole")]
+        truth = np.array([[(v[:, 0].min() + v[:, 0].max()) / 2, np.sign(v[:, 1].mean()) * 6.2] for v in poles])
+        found = np.array([lp.pole_base[:2] for lp in lamps if lp.pole_base is not None]).reshape(-1, 2)
+        d = np.linalg.norm(found[:, None] - truth[None], axis=2) if len(found) else np.zeros((0, len(truth)))
+        res["pole_detection"] = {"poles": len(truth), "detected": len(found),
+                                 "matched_within_0.3m": int((d.min(0) < 0.3).sum()) if len(found) else 0,
+                                 "false_positives": int((d.min(1) >= 0.3).sum()) if len(found) else 0,
+                                 "max_error_m": round(float(d.min(1).max()), 3) if len(found) else None}
+    # the road under the lamps vs 8-12 m away (lamps alone)
+    dark = EnvironmentMap.constant(0.0, 16, 32)
+    settings = PBRSettings(rays_per_pixel=2, threads=2)
+    lights = to_lights(specs, graph, what="street_lights")
+    rend = ClipRenderer(graph, dark, settings, lights=lights)
+    ratios = []
+    for i, v in enumerate(views):
+        out = rend.render(v.camera, time_s=v.time_s, frame_index=i)
+        pts, ok = world_points(v, out.gbuffers["depth"].numpy())
+        rad = out.hdr.numpy().reshape(-1, 3).sum(1)
+        road = ok & (np.abs(pts[:, 1]) < 5.3) & (pts[:, 2] < 0.3)
+        dists = [np.hypot(pts[:, 0] - lp.position[0], pts[:, 1] - lp.position[1]) for lp in lamps]
+        for k, dist in enumerate(dists):
+            others = np.min([d for j, d in enumerate(dists) if j != k], axis=0) if len(dists) > 1 else np.inf
+            under = road & (dist < 2.0)
+            away = road & (dist > 8.0) & (dist < 12.0) & (others > 8.0)  # not under another lamp
+            if under.sum() >= 5 and away.sum() >= 5:
+                ratios.append(float(rad[under].mean() / max(rad[away].mean(), 1e-9)))
+    res["street_lamps"] = {"placement": note, "under_vs_8_12m_away_radiance_ratio": {
+        "n": len(ratios), "min": round(min(ratios), 2) if ratios else None,
+        "median": round(float(np.median(ratios)), 2) if ratios else None}}
+
+    # headlights of the moving vehicles, every frame of the clip
+    moving = [o["id"] for o in describe_objects(m) if o["moving"] and o["vehicle"]]
+    all_views = tuple(views_from_frames(b, "all"))
+    head = []
+    for lt in vehicle_lights(graph, tail_lights=False):
+        if lt.node not in moving:
+            continue
+        rend = ClipRenderer(graph, dark, settings, lights=[lt])
+        ahead, counted = [], 0
+        for i, v in enumerate(all_views):
+            poses = graph.node_poses(v.time_s)
+            if lt.node not in poses:
+                continue
+            out = rend.render(v.camera, time_s=v.time_s, frame_index=i)
+            pts, ok = world_points(v, out.gbuffers["depth"].numpy())
+            rad = out.hdr.numpy().reshape(-1, 3).sum(1)
+            pose = poses[lt.node].numpy()
+            local = (pts - pose[:3, 3]) @ pose[:3, :3]
+            size = np.asarray(graph.node(lt.node).size)
+            on_car = (np.abs(local) <= size / 2 + 0.3).all(1)
+            road = ok & (pts[:, 2] < 0.4) & ~on_car
+            lit = road & (rad > 0.05 * max(float(rad.max()), 1e-12))
+            if lit.sum() < 5:
+                continue
+            counted += 1
+            ahead.append(float((local[lit, 0] > size[0] / 2).mean()))
+        head.append({"light": lt.name, "frames_with_lit_road": counted, "frames": len(all_views),
+                     "min_share_ahead": round(min(ahead), 3) if ahead else None})
+    res["headlights_of_moving_vehicles"] = head
+
+    # removal of each moving car: in every frame, where the car was, background (opaque) or sky
+    from core.relight import ObjectEdit, apply_edits
+
+    rem = {}
+    for oid in moving:
+        gone = apply_edits(graph, [ObjectEdit("remove", oid)])
+        r_before = ClipRenderer(graph, dark, PBRSettings(rays_per_pixel=1, threads=2))
+        r_after = ClipRenderer(gone, dark, PBRSettings(rays_per_pixel=1, threads=2))
+        shares, frames_seen, left = [], 0, 0
+        for i, v in enumerate(all_views):
+            if oid not in graph.node_poses(v.time_s):
+                continue
+            gb = r_before.render(v.camera, time_s=v.time_s, frame_index=i).gbuffers
+            ga = r_after.render(v.camera, time_s=v.time_s, frame_index=i).gbuffers
+            pts, ok = world_points(v, gb["depth"].numpy())
+            pose = graph.node_poses(v.time_s)[oid].numpy()
+            local = (pts - pose[:3, 3]) @ pose[:3, :3]
+            on_car = ok & (np.abs(local) <= np.asarray(graph.node(oid).size) / 2 + 0.1).all(1)
+            # only where the view ray points down enough to meet the street's ground (< ~50 m):
+            # above that, sky behind the car is right
+            c2w = np.asarray(v.camera.cam_to_world)
+            dirs = (pts - c2w[:3, 3]) / np.maximum(np.linalg.norm(pts - c2w[:3, 3], axis=1, keepdims=True), 1e-9)
+            on_car &= dirs[:, 2] < -0.035
+            if on_car.sum() < 10:
+                continue
+            frames_seen += 1
+            shares.append(float((ga["opacity"].numpy().reshape(-1)[on_car] > 0.5).mean()))
+            pts_a, ok_a = world_points(v, ga["depth"].numpy())
+            la = (pts_a - pose[:3, 3]) @ pose[:3, :3]
+            left += int((ok_a & (np.abs(la) <= np.asarray(graph.node(oid).size) / 2 - 0.2).all(1)).sum())
+        rem[oid] = {"frames_with_the_car": frames_seen, "min_share_background_not_sky": round(min(shares), 3)
+                    if shares else None, "mean_share_background_not_sky": round(float(np.mean(shares)), 3)
+                    if shares else None, "pixels_still_inside_its_box": left}
+    res["removal_of_moving_cars"] = rem
+
+    # the README's spot-light example: changed pixels of the relit clip
+    spot = LightSpec("spot", (2.6, 0.6, -0.1), 20000.0, (1.0, 0.0, -0.15), (1.0, 0.95, 0.85), 15.0, 35.0, "car4")
+    with tempfile.TemporaryDirectory() as tmp:
+        base = Scenario(envmap=load_hdri("sunset"), rotation_deg=30.0, exposure_ev=0.0, denoiser="none",
+                        outputs=("png",), **common)
+        off = render_scenario(graph, base, Path(tmp) / "a").result.frames
+        from dataclasses import replace
+
+        on = render_scenario(graph, replace(base, lights=(spot,)), Path(tmp) / "b").result.frames
+        diff = np.abs(np.round(on * 255) - np.round(off * 255)).max(-1)
+        res["readme_spot_example"] = {"attach_to": "car4", "changed_pixels_gt_2_per_frame_min": int(
+            min((f > 2).sum() for f in diff)), "changed_pixels_gt_2_per_frame_max": int(max((f > 2).sum() for f in diff)),
+            "pixels_per_frame": int(diff[0].size)}
+    res["seconds"] = round(time.perf_counter() - t0, 1)
+    Path(a.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(a.out).write_text(json.dumps(res, indent=1))
+    print(json.dumps(res, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,322 @@
+"""The objects of a scene for simulator clients: what they are, their lights, their Gaussians as
+assets, their trajectories.
+
+* :func:`describe_objects` - each tracked object of a bundle (and of a reconstruction): id,
+  class, box size, parked or moving, pose per frame (the service's ``GET /scenes/{id}/objects``
+  and ``brdf info``);
+* :func:`object_box` / :func:`crop_to_box` - a node's box (the tracked size, else a robust
+  estimate from its Gaussians) and its Gaussians cropped to it, so no floater travels with an
+  inserted or moved car;
+* :func:`solid_filler` - opaque Gaussians filling a node's inside: a reconstructed car is a
+  shell of small, half-transparent Gaussians that camera rays composite to a surface but a
+  shadow ray from the side slips through, so its cast shadow is faint (the car looks afloat);
+  filled, it casts a solid one;
+* :func:`vehicle_lights` - two headlights (spots forward) and two tail lights (red points back)
+  on every vehicle node, in the node frame (they follow its pose), switchable per object;
+* :func:`export_asset` / :func:`load_asset` - a node as a file (Gaussians with their materials,
+  box, class) to insert into another scene;
+* :func:`retime_poses` - trajectory edits: speed, lateral offset.
+
+Node frame (the bundles' convention): origin at the centre of the box, x forward, y left, z up,
+metres.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import torch
+
+from core.errors import ConfigError, FormatError
+
+#: Classes whose nodes carry vehicle lights (lower case; drivestudio's Waymo classes included).
+VEHICLE_CLASSES = frozenset({"car", "vehicle", "truck", "bus", "van", "suv", "pickup", "motorcycle", "trailer",
+                             "construction_vehicle", "emergency_vehicle"})
+#: A node counts as moving when its box centre travels more than this over the clip, metres.
+MOVING_MIN_M = 0.05
+#: Headlight: candela of the on-axis beam (the REST default), cone half-angles, aim (slightly down).
+HEADLIGHT_CONE_DEG = (12.0, 30.0)
+HEADLIGHT_DIRECTION = (1.0, 0.0, -0.08)
+HEADLIGHT_COLOR = (1.0, 0.95, 0.85)
+#: Vehicle lamps sit this far out from the box's front / rear face, metres (clear of the body's
+#: Gaussians, whose shadow rays would otherwise hide the lamp).
+LAMP_CLEARANCE_M = 0.2
+#: Tail light: a red point light just behind the rear face (candela; a lit tail lamp is 4-20 cd).
+TAIL_LIGHT_CD = 10.0
+TAIL_LIGHT_COLOR = (1.0, 0.03, 0.02)
+ASSET_FORMAT = "brdfusion.object_asset"
+ASSET_VERSION = 1
+
+
+def is_vehicle(cls: str) -> bool:
+    return str(cls).strip().lower().replace(" ", "_") in VEHICLE_CLASSES
+
+
+def describe_objects(manifest, nodes: Sequence[str] | None = None) -> list[dict]:
+    """One dict per tracked object of the bundle ``manifest``: ``id``, ``class``, ``size``
+    ``[l, w, h]`` metres, ``moving`` (its box centre travels more than :data:`MOVING_MIN_M`),
+    ``vehicle`` (it carries vehicle lights), ``time_indices``, ``poses``
+    ``[{time_index, time_s, obj_to_world}]`` (4x4 row-major) and, with ``nodes`` (the node names
+    of a reconstruction), ``reconstructed``: whether the reconstruction has Gaussians for it."""
+    times = list(manifest.times)
+    out = []
+    for o in manifest.objects:
+        ti = sorted(o.poses)
+        centres = np.array([np.asarray(o.poses[t])[:3, 3] for t in ti], np.float64)
+        travel = float(np.linalg.norm(centres[1:] - centres[:-1], axis=1).sum()) if len(ti) > 1 else 0.0
+        d = {"id": o.id, "class": o.cls, "size": [float(x) for x in o.size], "moving": travel > MOVING_MIN_M,
+             "vehicle": is_vehicle(o.cls), "path_length_m": round(travel, 3), "time_indices": ti,
+             "poses": [{"time_index": int(t), "time_s": float(times[t]) if t < len(times) else None,
+                        "obj_to_world": [[float(x) for x in row] for row in np.asarray(o.poses[t])]} for t in ti]}
+        if nodes is not None:
+            d["reconstructed"] = o.id in set(nodes)
+        out.append(d)
+    return out
+
+
+def attach_sizes(graph, manifest):
+    """Give every node of ``graph`` without a box the tracked size of the same id in the bundle
+    ``manifest`` (reconstructions saved before node sizes were stored). In place; returns graph."""
+    sizes = {o.id: tuple(float(x) for x in o.size) for o in manifest.objects}
+    for n in graph.nodes:
+        if n.size is None and n.name in sizes:
+            n.size = sizes[n.name]
+    return graph
+
+
+def object_box(node) -> tuple[float, float, float]:
+    """The node's box ``(l, w, h)`` metres: the tracked size when known, else twice the largest
+    |coordinate| of the central 96% of its (opacity > 0.1) Gaussian means along each axis."""
+    if getattr(node, "size", None) is not None:
+        return tuple(node.size)
+    g = node.gaussians
+    m = g.means.detach().to(torch.float64)
+    keep = g.opacities().detach().reshape(-1) > 0.1
+    if int(keep.sum()) >= 8:
+        m = m[keep]
+    if m.shape[0] == 0:
+        raise ConfigError(f"node {node.name!r}: no Gaussians, no box")
+    lo = torch.quantile(m, 0.02, dim=0)
+    hi = torch.quantile(m, 0.98, dim=0)
+    half = torch.maximum(lo.abs(), hi.abs()).clamp_min(0.05)
+    return tuple(float(2 * x) for x in half)
+
+
+def crop_to_box(gaussians, size: Sequence[float], margin_m: float = 0.1):
+    """The Gaussians whose means lie inside the box ``size`` (l, w, h, centred at the origin of
+    the node frame) grown by ``margin_m``: what a tracked object really is, without the floaters
+    optimisation attached to it."""
+    if not (isinstance(margin_m, (int, float)) and math.isfinite(margin_m) and 0 <= margin_m <= 10):
+        raise ConfigError(f"margin_m: must be in [0, 10] metres, got {margin_m!r}")
+    sz = torch.as_tensor([float(x) for x in size], dtype=torch.float64)
+    if sz.shape != (3,) or not bool(torch.isfinite(sz).all()) or bool((sz <= 0).any()):
+        raise ConfigError(f"size: expected 3 finite lengths > 0, got {size!r}")
+    half = sz / 2 + margin_m
+    m = gaussians.means.detach().to(torch.float64)
+    inside = (m.abs() <= half).all(dim=1)
+    return gaussians.index(torch.nonzero(inside).reshape(-1))
+
+
+def solid_filler(gaussians, size: Sequence[float], *, voxel_m: float = 0.15, clearance_m: float = 0.3,
+                 top_margin_voxels: float = 1.5):
+    """Opaque Gaussians filling the inside of an object (node frame, box ``size`` centred at the
+    origin): on a ``voxel_m`` grid over the box's footprint, every column under the object's
+    own surface (its Gaussians with opacity > 0.3) whose four neighbours are columns too (one
+    voxel in from the sides), from ``clearance_m`` above the box's bottom (under a car's body
+    there is air) to ``top_margin_voxels`` voxels under the highest surface Gaussian of the
+    column (one voxel in from the top). Each filler is an isotropic Gaussian of 0.6 voxel,
+    opacity 0.99, with the colour and materials of its 8 nearest surface Gaussians: where the
+    shell lets a camera ray through, it sees the colour of the nearby surface. Empty when the
+    object has too few Gaussians to have a shape."""
+    from scipy.spatial import cKDTree
+
+    from core.gaussians import Gaussians
+
+    for name, v, lo, hi in (("voxel_m", voxel_m, 0.01, 5.0), ("clearance_m", clearance_m, 0.0, 10.0),
+                            ("top_margin_voxels", top_margin_voxels, 0.0, 10.0)):
+        if not (isinstance(v, (int, float)) and math.isfinite(v) and lo <= v <= hi):
+            raise ConfigError(f"{name}: must be a finite number in [{lo}, {hi}], got {v!r}")
+    sz = np.asarray([float(x) for x in size], np.float64)
+    if sz.shape != (3,) or not np.isfinite(sz).all() or (sz <= 0).any():
+        raise ConfigError(f"size: expected 3 finite lengths > 0, got {size!r}")
+    g = gaussians.detach()
+    keep = (g.opacities().reshape(-1) > 0.3).numpy()
+    pts_all = g.means.to(torch.float64).numpy()
+    half = sz / 2
+    keep &= (np.abs(pts_all) <= half + 0.05).all(1)
+    surf = pts_all[keep]
+    nx, ny = max(int(np.ceil(sz[0] / voxel_m)), 1), max(int(np.ceil(sz[1] / voxel_m)), 1)
+    if len(surf) < 16 or nx < 3 or ny < 3:
+        return Gaussians.empty(g.dtype)
+    ij = np.floor((surf[:, :2] + half[:2]) / voxel_m).astype(np.int64)
+    ok = (ij[:, 0] >= 0) & (ij[:, 0] < nx) & (ij[:, 1] >= 0) & (ij[:, 1] < ny)
+    top = np.full((nx, ny), -np.inf)
+    np.maximum.at(top, (ij[ok, 0], ij[ok, 1]), surf[ok, 2])
+    col = np.isfinite(top)
+    inner = col.copy()
+    inner[1:, :] &= col[:-1, :]
+    inner[:-1, :] &= col[1:, :]
+    inner[:, 1:] &= col[:, :-1]
+    inner[:, :-1] &= col[:, 1:]
+    inner[0, :] = inner[-1, :] = inner[:, 0] = inner[:, -1] = False
+    z0 = -half[2] + clearance_m
+    centres = []
+    for i, j in zip(*np.nonzero(inner)):
+        for z in np.arange(z0, top[i, j] - top_margin_voxels * voxel_m, voxel_m):
+            centres.append(((i + 0.5) * voxel_m - half[0], (j + 0.5) * voxel_m - half[1], z + voxel_m / 2))
+    if not centres:
+        return Gaussians.empty(g.dtype)
+    c = np.asarray(centres)
+    _, nn = cKDTree(surf).query(c, k=min(8, len(surf)))
+    nn = torch.as_tensor(np.asarray(nn).reshape(len(c), -1))
+    act = g.activated()
+    idx = torch.as_tensor(np.nonzero(keep)[0])
+
+    def near(x):
+        return x.detach()[idx][nn].mean(1)
+
+    n = len(c)
+    quats = torch.zeros(n, 4, dtype=g.dtype)
+    quats[:, 0] = 1.0
+    normals = torch.zeros(n, 3, dtype=g.dtype)
+    normals[:, 2] = 1.0
+    return Gaussians.from_activated(torch.as_tensor(c, dtype=g.dtype), quats,
+                                    torch.full((n, 3), 0.6 * voxel_m, dtype=g.dtype),
+                                    torch.full((n, 1), 0.99, dtype=g.dtype), near(act["colors"]), normals,
+                                    near(act["albedo"]), near(act["roughness"]), near(act["metallic"]))
+
+
+def prepare_edited(gaussians, size: Sequence[float], *, crop: bool = True, solid: bool = True):
+    """An edited (moved or inserted) object's Gaussians: cropped to its box (:func:`crop_to_box`)
+    and filled (:func:`solid_filler`), as asked."""
+    from core.gaussians import Gaussians
+
+    g = crop_to_box(gaussians, size) if crop else gaussians.detach()
+    if solid:
+        f = solid_filler(g, size)
+        if f.num:
+            g = Gaussians.cat([g.detach(), f.to(g.dtype)])
+    return g
+
+
+def vehicle_lights(graph, *, headlight_cd: float = 3000.0, tail_light_cd: float = TAIL_LIGHT_CD,
+                   headlights: bool = True, tail_lights: bool = True, off: Sequence[str] = ()) -> list:
+    """Headlights (two spots forward, :data:`HEADLIGHT_CONE_DEG`, aimed 4.6 deg down) and tail
+    lights (two red points) on every vehicle node of ``graph`` except those named in ``off``;
+    placed from the node's box (:func:`object_box`): 0.25 m in from the sides, 0.65 m (head) and
+    0.85 m (tail) above the box's bottom, :data:`LAMP_CLEARANCE_M` out from the front / rear
+    face (a reconstructed body's Gaussians are centimetres wide: a lamp inside them would be
+    shadowed by them). In the node frame: they follow the node's pose. ConfigError names an ``off`` id that
+    is not a node."""
+    from core.pbr.lights import PointLight, SpotLight
+
+    names = [n.name for n in graph.nodes]
+    bad = [x for x in off if x not in names]
+    if bad:
+        raise ConfigError(f"vehicle_lights_off: no object {bad[0]!r} in the scene (objects: {names})")
+    out = []
+    for n in graph.nodes:
+        if n.name in off or not is_vehicle(n.cls):
+            continue
+        l, w, h = object_box(n)
+        y = max(w / 2 - 0.25, 0.1)
+        for k, side in enumerate((1.0, -1.0)):
+            if headlights:
+                out.append(SpotLight((l / 2 + LAMP_CLEARANCE_M, side * y, -h / 2 + 0.65), color=HEADLIGHT_COLOR,
+                                     intensity=headlight_cd, range=80.0, node=n.name,
+                                     name=f"{n.name}/headlight{k}", direction=HEADLIGHT_DIRECTION,
+                                     inner_deg=HEADLIGHT_CONE_DEG[0], outer_deg=HEADLIGHT_CONE_DEG[1]))
+            if tail_lights:
+                out.append(PointLight((-l / 2 - LAMP_CLEARANCE_M, side * y, -h / 2 + 0.85), color=TAIL_LIGHT_COLOR,
+                                      intensity=tail_light_cd, range=10.0, node=n.name, name=f"{n.name}/tail{k}"))
+    return out
+
+
+# -- assets -----------------------------------------------------------------------------------
+
+def export_asset(graph, object_id: str, path: str | Path, *, crop: bool = True, margin_m: float = 0.1) -> Path:
+    """Write node ``object_id`` of ``graph`` as an asset file: its Gaussians (geometry and
+    materials, node frame; cropped to its box unless ``crop`` is False), box, class. ``torch.save``
+    of ``{"format", "version", "id", "cls", "size": [l, w, h], "gaussians": <dict>}``."""
+    names = [n.name for n in graph.nodes]
+    if object_id not in names:
+        raise ConfigError(f"object_id: no object {object_id!r} in the scene (objects: {names})")
+    node = graph.node(object_id)
+    size = object_box(node)
+    g = crop_to_box(node.gaussians, size, margin_m) if crop else node.gaussians
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    payload = {"format": ASSET_FORMAT, "version": ASSET_VERSION, "id": node.name, "cls": node.cls,
+               "size": list(size), "gaussians": {k: v.detach().cpu().contiguous() for k, v in g.tensors().items()}}
+    from core.io.atomic import atomic_output
+
+    with atomic_output(path) as tmp:
+        torch.save(payload, tmp)
+    return path
+
+
+def load_asset(path: str | Path, what: str = "asset"):
+    """``(cls, size, Gaussians)`` of an asset file (:func:`export_asset`); FormatError naming the
+    file and field."""
+    from core.gaussians import Gaussians
+
+    from core.io.torchfile import read_torch_file
+
+    p = Path(path)
+    d = read_torch_file(p, ASSET_FORMAT, (ASSET_VERSION,), "object asset", label=f"{what} {p}")
+    try:
+        return str(d["cls"]), tuple(float(x) for x in d["size"]), Gaussians(**d["gaussians"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise FormatError(f"{what} {p}: missing or malformed field ({exc})") from exc
+
+
+# -- trajectories -----------------------------------------------------------------------------
+
+def retime_poses(poses: torch.Tensor, time_indices: torch.Tensor, times: torch.Tensor, *, speed: float = 1.0,
+                 lateral_offset_m: float = 0.0) -> torch.Tensor:
+    """Keyframe poses ``[K, 4, 4]`` of an edited trajectory at the same time indices:
+
+    * ``speed``: the object covers its path ``speed`` times as fast: the pose at time ``t`` is
+      the original pose at ``t0 + speed (t - t0)`` (``t0`` its first keyframe time; translation
+      interpolated linearly, extrapolated past the last keyframe with the last velocity; rotation
+      of the nearest keyframe past the ends, slerp between);
+    * ``lateral_offset_m``: every pose moved along its own left axis (node +y), metres: a lane
+      offset that follows the road's curves.
+    """
+    from core.rotations import quat_slerp, quat_to_rotmat, rotmat_to_quat
+
+    if not (isinstance(speed, (int, float)) and math.isfinite(speed) and 0 <= speed <= 100):
+        raise ConfigError(f"speed: must be a finite number in [0, 100], got {speed!r}")
+    if not (isinstance(lateral_offset_m, (int, float)) and math.isfinite(lateral_offset_m)
+            and abs(lateral_offset_m) <= 1e3):
+        raise ConfigError(f"lateral_offset_m: must be a finite number of metres, got {lateral_offset_m!r}")
+    P = poses.detach().to(torch.float64)
+    ts = torch.as_tensor(times, dtype=torch.float64)[time_indices]
+    out = P.clone()
+    if speed != 1.0 and len(P) > 1:
+        t0 = float(ts[0])
+        for k in range(len(P)):
+            t = t0 + speed * (float(ts[k]) - t0)
+            j = int(torch.searchsorted(ts, torch.tensor([t], dtype=torch.float64))[0])
+            if j <= 0:
+                i0, i1 = 0, 1
+            elif j >= len(ts):
+                i0, i1 = len(ts) - 2, len(ts) - 1
+            else:
+                i0, i1 = j - 1, j
+            w = (t - float(ts[i0])) / max(float(ts[i1] - ts[i0]), 1e-12)
+            out[k, :3, 3] = P[i0, :3, 3] + w * (P[i1, :3, 3] - P[i0, :3, 3])
+            wr = min(max(w, 0.0), 1.0)
+            q = quat_slerp(rotmat_to_quat(P[i0, :3, :3]), rotmat_to_quat(P[i1, :3, :3]), wr)
+            out[k, :3, :3] = quat_to_rotmat(q)
+    if lateral_offset_m:
+        out[:, :3, 3] = out[:, :3, 3] + lateral_offset_m * out[:, :3, 1]
+    return out
+
+
+__all__ = ["VEHICLE_CLASSES", "is_vehicle", "describe_objects", "attach_sizes", "object_box", "crop_to_box",
+           "solid_filler", "prepare_edited",
+           "vehicle_lights", "export_asset", "load_asset", "retime_poses"]

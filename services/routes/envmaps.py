@@ -1,0 +1,113 @@
+"""Environment map upload (.exr / .hdr, NaN/Inf rejected), listing and metadata."""
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+import uuid
+from pathlib import Path
+from typing import Annotated
+
+import anyio
+from fastapi import APIRouter, Query, Request
+from fastapi.responses import JSONResponse
+from sqlalchemy import select
+
+import api_schemas as S
+from services.auth import Principal
+from services.routes.common import (
+    E, ENVMAP_TYPES, Ctx, IdemKey, IdPath, P, _err, _fingerprint, envmap_out, stream_upload, visible,
+)
+from worker.db import Envmap, IdempotencyKey, new_id
+
+log = logging.getLogger("brdf.gateway")
+
+
+def build(ctx: Ctx) -> APIRouter:
+    """The routes, bound to the app's context (settings, database, store, Redis)."""
+    settings = ctx.settings
+    db = ctx.db
+    store = ctx.store
+    idem_lookup = ctx.idem_lookup
+    router = APIRouter()
+
+    # --- environment maps ---------------------------------------------------------------------
+    def ingest_envmap(upload: Path, size: int, digest: str, name: str, p: Principal, idem: str | None):
+        from core.errors import CoreError
+        from core.io import exr_header, read_envmap
+
+        fp = _fingerprint("envmap", digest, name)
+        with db.session() as s:
+            existing = idem_lookup(s, p, idem, fp, "envmap")
+            if existing:
+                return s.get(Envmap, existing), True
+        with open(upload, "rb") as fh:
+            head = fh.read(16)
+        if head[:4] == b"\x76\x2f\x31\x01":
+            fmt = "exr"
+        elif head[:2] == b"#?":
+            fmt = "hdr"
+        else:
+            raise _err(415, "not an OpenEXR or Radiance .hdr file (unknown magic bytes)")
+        path = upload.with_suffix("." + fmt)
+        os.replace(upload, path)
+        try:
+            if fmt == "exr":
+                exr_header(path)
+            rgb = read_envmap(path)
+        except CoreError as e:
+            raise _err(422, f"environment map rejected: {str(e).replace(str(path), 'upload')}") from None
+        eid = new_id()
+        key = f"envmaps/{eid}.{fmt}"
+        store.put_file(path, key)
+        row = Envmap(id=eid, tenant=p.tenant, name=name, format=fmt, width=int(rgb.shape[1]),
+                     height=int(rgb.shape[0]), size_bytes=size, storage_key=key)
+        try:
+            with db.session() as s:
+                s.add(row)
+                if idem:
+                    s.add(IdempotencyKey(tenant=p.tenant, key=idem, request_hash=fp, resource="envmap",
+                                         resource_id=eid))
+        except BaseException:
+            store.delete_prefix(key)
+            raise
+        return row, False
+
+    @router.post("/envmaps", response_model=S.EnvmapOut, status_code=201, tags=["envmaps"], responses=E,
+              openapi_extra={"requestBody": {"required": True, "description": "an equirectangular map, .exr or .hdr",
+                                             "content": {t: {"schema": {"type": "string", "format": "binary"}}
+                                                         for t in ("image/x-exr", "image/vnd.radiance")}}})
+    async def upload_envmap(request: Request, p: P, idem: IdemKey = None,
+                            name: Annotated[str, Query(min_length=1, max_length=256)] = "envmap"):
+        """Upload an HDR environment map (W = 2 H; finite, non-negative values)."""
+        ctype = request.headers.get("content-type", "").split(";")[0].strip().lower()
+        if ctype not in ENVMAP_TYPES:
+            raise _err(415, f"Content-Type {ctype or '(none)'!r} not accepted: send image/x-exr or "
+                            "image/vnd.radiance")
+        work = settings.data_dir / "uploads" / uuid.uuid4().hex
+        work.mkdir(parents=True)
+        try:
+            upload = work / "upload.bin"
+            size, digest = await stream_upload(request, upload, settings.max_envmap_bytes, "environment map")
+            row, replay = await anyio.to_thread.run_sync(ingest_envmap, upload, size, digest, name, p, idem)
+        finally:
+            await anyio.to_thread.run_sync(lambda: shutil.rmtree(work, ignore_errors=True))
+        return JSONResponse(envmap_out(row).model_dump(mode="json"), status_code=200 if replay else 201,
+                            headers={"Location": f"/envmaps/{row.id}"})
+
+    @router.get("/envmaps", response_model=S.EnvmapList, tags=["envmaps"], responses=E)
+    def list_envmaps(p: P):
+        with db.session() as s:
+            rows = s.scalars(visible(select(Envmap), Envmap, p).order_by(Envmap.created_at.desc()).limit(500)).all()
+            return S.EnvmapList(items=[envmap_out(r) for r in rows])
+
+    @router.get("/envmaps/{envmap_id}", response_model=S.EnvmapOut, tags=["envmaps"], responses=E)
+    def read_envmap_meta(envmap_id: IdPath, p: P):
+        with db.session() as s:
+            e = s.scalar(visible(select(Envmap).where(Envmap.id == envmap_id), Envmap, p))
+            if e is None:
+                raise _err(404, f"envmap {envmap_id!r} not found")
+            return envmap_out(e)
+
+    return router

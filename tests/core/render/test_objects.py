@@ -1,0 +1,228 @@
+"""Objects for simulator edits (core.render.objects, core.relight.apply_edits): listing, box crop,
+assets exported from one scene and inserted into another, trajectory edits, removal in every
+frame, captured camera paths (core.render.scenario.views_from_capture)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from core.conventions import look_at
+from core.errors import ConfigError, FormatError
+from core.gaussians import Gaussians
+from core.pbr.envmap import EnvironmentMap
+from core.pbr.oracle import OracleSettings, oracle_gaussians
+from core.pbr.render import Camera, ClipRenderer, PBRSettings
+from core.relight import ObjectEdit, View, apply_edits
+from core.render.objects import crop_to_box, describe_objects, export_asset, load_asset, retime_poses
+from core.scene_graph import RigidNode, SceneGraph
+from core.synth import geometry as geo
+from core.synth.street import Material, Part
+
+SIZE = (4.4, 1.8, 1.5)
+XS = (3.0, 5.0, 7.0, 9.0)
+
+
+def _graph(with_floaters: bool = True, road_y: float = 8.0):
+    road = Part("road", *geo.quad([(-5, -road_y, 0), (35, -road_y, 0), (35, road_y, 0), (-5, road_y, 0)]),
+                Material("asphalt", (0.3, 0.3, 0.3), 0.8, 0.0))
+    body = Part("body", *geo.box((0, 0, 0), SIZE), Material("paint", (0.6, 0.1, 0.1), 0.4, 0.0))
+    eye = np.array([-2.0, -2.0, 7.0])
+    bg = oracle_gaussians([road], eye[None], 40.0, OracleSettings(spacing_px=1.5, max_spacing=0.25))
+    car = oracle_gaussians([body], eye[None], 40.0, OracleSettings(spacing_px=1.5, max_spacing=0.15))
+    if with_floaters:  # what optimisation leaves attached to a node: a column of blobs above the car
+        fl = oracle_gaussians([Part("f", *geo.box((0.0, 0.0, 3.5), (0.4, 0.4, 2.5)),
+                                    Material("f", (0.9, 0.9, 0.9), 0.5, 0.0))], eye[None], 40.0,
+                              OracleSettings(spacing_px=1.5, max_spacing=0.2))
+        car = Gaussians.cat([car, fl])
+    t = len(XS)
+    moving = torch.eye(4, dtype=torch.float64).repeat(t, 1, 1)
+    moving[:, 0, 3] = torch.tensor(XS)
+    moving[:, 1, 3], moving[:, 2, 3] = -2.0, 0.75
+    graph = SceneGraph(bg, [RigidNode("car0", "car", car, torch.arange(t), moving, size=SIZE)],
+                       torch.arange(t, dtype=torch.float64) * 0.5)
+    c2w = look_at(eye, np.array([12.0, -1.0, 0.0]))
+    views = [View(Camera(c2w, 40.0, 40.0, 40.0, 30.0, 80, 60), float(x), f"f{i}") for i, x in
+             enumerate(graph.times.tolist())]
+    return graph, views
+
+
+@pytest.fixture(scope="module")
+def street():
+    return _graph()
+
+
+def _gbuf(graph, views):
+    r = ClipRenderer(graph, EnvironmentMap.constant(0.5, 16, 32), PBRSettings(rays_per_pixel=1, threads=2))
+    return [r.render(v.camera, time_s=v.time_s, frame_index=i).gbuffers for i, v in enumerate(views)]
+
+
+def test_removing_a_moving_car_removes_it_in_every_frame_and_shows_the_road(street):
+    graph, views = street
+    before = _gbuf(graph, views)
+    gone = apply_edits(graph, [ObjectEdit("remove", "car0")])
+    after = _gbuf(gone, views)
+    for i, v in enumerate(views):
+        assert gone.compose(v.time_s).num == graph.background.num
+        albedo_b, albedo_a = before[i]["albedo"].numpy(), after[i]["albedo"].numpy()
+        car = albedo_b[..., 0] > albedo_b[..., 1] + 0.2  # red paint in frame i
+        assert car.sum() >= 30, i
+        # where the car was: the grey road, opaque (background, not sky)
+        assert (after[i]["opacity"].numpy()[car, 0] > 0.9).mean() > 0.95, i
+        assert np.abs(albedo_a[car, 0] - albedo_a[car, 1]).max() < 0.05, i
+        assert float(after[i]["depth"].numpy()[car].min()) > 0.0, i
+
+
+def test_cropping_to_the_box_drops_the_floaters_of_an_inserted_car(street, tmp_path):
+    graph, views = street
+    node = graph.node("car0")
+    kept = crop_to_box(node.gaussians, SIZE)
+    assert kept.num < node.gaussians.num
+    assert float(kept.means[:, 2].max()) <= SIZE[2] / 2 + 0.1 + 1e-6
+    with pytest.raises(ConfigError, match="size"):
+        crop_to_box(node.gaussians, (1.0, -1.0, 1.0))
+    # inserted 6 m to the left: with the crop (the default) no column of depth stands above it
+    empty = _graph(with_floaters=False)[0]
+    base = SceneGraph(empty.background, [], empty.times)
+    src = SceneGraph(empty.background, [node], empty.times)
+    for crop, column in ((True, False), (False, True)):
+        g = apply_edits(src, [ObjectEdit("insert", "car9", "car0", (0.0, 6.0, 0.0), crop=crop),
+                              ObjectEdit("remove", "car0")])
+        gb = _gbuf(g, views[:1])[0]
+        sky_before = _gbuf(base, views[:1])[0]["opacity"].numpy()[..., 0] < 0.1
+        opaque_now = gb["opacity"].numpy()[..., 0] > 0.5
+        assert bool((sky_before & opaque_now).any()) is column, crop  # floaters against the sky
+
+
+def test_an_object_asset_exported_from_one_scene_goes_into_another(street, tmp_path):
+    graph, views = street
+    path = export_asset(graph, "car0", tmp_path / "car0.pt")
+    cls, size, g = load_asset(path)
+    assert cls == "car" and size == SIZE and g.num == crop_to_box(graph.node("car0").gaussians, SIZE).num
+    other, other_views = _graph(with_floaters=False, road_y=12.0)
+    other = SceneGraph(other.background, [], other.times)  # a scene with no car
+    ins = apply_edits(other, [ObjectEdit("insert", "carX", asset=str(path), offset_m=(10.0, 3.0, 0.75),
+                                         yaw_deg=90.0, solid=False)])
+    node = ins.node("carX")
+    assert node.size == SIZE and node.cls == "car" and ins.compose(0.0).num == other.background.num + g.num
+    pose = ins.node_poses(1.0)["carX"].numpy()
+    np.testing.assert_allclose(pose[:3, 3], [10.0, 3.0, 0.75], atol=1e-9)
+    np.testing.assert_allclose(pose[:3, 0], [0.0, 1.0, 0.0], atol=1e-9)  # faces +y
+    # it renders where it was put (its red paint around the projection of (10, 3))
+    gb = _gbuf(ins, other_views[:1])[0]["albedo"].numpy()
+    red = gb[..., 0] > gb[..., 1] + 0.2
+    assert red.sum() >= 20
+    with pytest.raises(ConfigError, match="exactly one of source_object_id or asset"):
+        apply_edits(other, [ObjectEdit("insert", "carY")])
+    (tmp_path / "bad.pt").write_bytes(b"not a torch file")
+    with pytest.raises(FormatError, match="asset"):
+        apply_edits(other, [ObjectEdit("insert", "carY", asset=str(tmp_path / "bad.pt"))])
+    with pytest.raises(ConfigError, match="object_id"):
+        export_asset(graph, "nope", tmp_path / "x.pt")
+
+
+def _in_box_shadow(pts, light, centre, size):
+    """Road points whose segment to ``light`` crosses the axis-aligned box (slab test)."""
+    d = light[None] - pts
+    lo, hi = centre - np.asarray(size) / 2, centre + np.asarray(size) / 2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t1, t2 = (lo - pts) / d, (hi - pts) / d
+    tmin = np.nanmax(np.minimum(t1, t2), axis=1)
+    tmax = np.nanmin(np.maximum(t1, t2), axis=1)
+    return (tmax >= np.maximum(tmin, 0)) & (tmin <= 1)
+
+
+def test_a_filled_object_casts_a_solid_shadow_where_its_half_transparent_shell_does_not(street):
+    from core.pbr.lights import PointLight
+    from core.render.objects import solid_filler
+
+    graph, views = street
+    node = graph.node("car0")
+    # a reconstructed car's shell: sparse small disks of opacity 0.5 (camera rays composite many of
+    # them to a surface; a shadow ray crosses few)
+    shell = crop_to_box(node.gaussians, SIZE)
+    shell = shell.index(torch.arange(0, shell.num, 3)).clone()
+    shell.opacity_logits.data[:] = 0.0
+    shell.log_scales.data[:, :2] -= float(np.log(2.0))
+    fill = solid_filler(shell, SIZE)
+    assert fill.num > 50 and bool((fill.opacities() > 0.98).all())
+    inner = np.asarray(SIZE) / 2
+    assert bool((fill.means.abs() <= torch.as_tensor(inner, dtype=fill.dtype)).all())  # inside the box
+    assert float(fill.means[:, 2].min()) >= -SIZE[2] / 2 + 0.3  # air under the body
+    light = np.array([8.0, -6.0, 6.0])
+    means = []
+    for solid in (False, True):
+        g = SceneGraph(graph.background, [RigidNode("car0", "car", shell, node.time_indices, node.poses, size=SIZE)],
+                       graph.times)
+        g = apply_edits(g, [ObjectEdit("move", "car0", solid=solid)])
+        r = ClipRenderer(g, EnvironmentMap.constant(0.0, 16, 32), PBRSettings(rays_per_pixel=1, threads=2),
+                         lights=[PointLight(tuple(light), intensity=500.0)])
+        v = views[0]
+        res = r.render(v.camera, time_s=v.time_s)
+        from core.conventions import camera_ray_directions
+
+        cam = v.camera
+        d = camera_ray_directions(cam.cam_to_world, cam.fx, cam.fy, cam.cx, cam.cy, cam.width,
+                                  cam.height).reshape(-1, 3)
+        z = res.gbuffers["depth"].numpy().reshape(-1)
+        pts = cam.cam_to_world[:3, 3] + d * (z / (d @ cam.cam_to_world[:3, 2]))[:, None]
+        centre = g.node_poses(v.time_s)["car0"].numpy()[:3, 3]
+        road = (z > 0) & (pts[:, 2] < 0.3) & ~(np.abs(pts - centre) <= np.asarray(SIZE) / 2 + 0.3).all(1)
+        # the umbra of the body: the box above the 0.3 m under the car, 0.15 m in from its sides
+        body = np.asarray(SIZE) - np.array([0.3, 0.3, 0.45])
+        shadow = road & _in_box_shadow(pts, light, centre + np.array([0.0, 0.0, 0.15]), body)
+        lit = road & ~shadow & (np.linalg.norm(pts[:, :2] - centre[:2], axis=1) < 6.0)
+        rad = res.hdr.numpy().reshape(-1, 3).sum(1)
+        assert shadow.sum() >= 20
+        means.append(float(rad[shadow].mean() / rad[lit].mean()))
+    shell_ratio, solid_ratio = means
+    assert solid_ratio < 0.5 * shell_ratio and solid_ratio < 0.15, means
+
+
+def test_trajectory_edits_speed_lateral_offset_and_explicit_poses(street):
+    graph, _ = street
+    n = graph.node("car0")
+    fast = retime_poses(n.poses, n.time_indices, graph.times, speed=2.0)
+    np.testing.assert_allclose(fast[:, 0, 3].numpy(), [3.0, 7.0, 11.0, 15.0])  # extrapolated past the end
+    stop = retime_poses(n.poses, n.time_indices, graph.times, speed=0.0)
+    np.testing.assert_allclose(stop[:, 0, 3].numpy(), [3.0] * 4)
+    lane = apply_edits(graph, [ObjectEdit("move", "car0", lateral_offset_m=3.5)]).node("car0")
+    np.testing.assert_allclose(lane.poses[:, 1, 3].numpy(), [1.5] * 4)  # +y is the car's left
+    m = np.eye(4)
+    m[:3, 3] = [1.0, 2.0, 0.75]
+    exp = apply_edits(graph, [ObjectEdit("move", "car0", poses=((1, m), (3, m)))]).node("car0")
+    assert exp.time_indices.tolist() == [1, 3] and exp.pose_at(0.0, graph.times) is None  # hidden at t = 0
+    with pytest.raises(ConfigError, match=r"edits\[0\].poses\[0\].time_index"):
+        apply_edits(graph, [ObjectEdit("move", "car0", poses=((9, m),))])
+    with pytest.raises(ConfigError, match=r"edits\[0\].speed"):
+        apply_edits(graph, [ObjectEdit("move", "car0", speed=-1.0)])
+
+
+def test_describe_objects_and_captured_camera_paths():
+    from pathlib import Path
+
+    from core.bundle import open_bundle
+    from core.render.scenario import views_from_capture
+
+    b = open_bundle(Path(__file__).resolve().parents[3] / "data" / "scenes" / "default", validate=False)
+    objs = {o["id"]: o for o in describe_objects(b.manifest, nodes=["car0", "car4"])}
+    assert not objs["car0"]["moving"] and objs["car4"]["moving"] and objs["car4"]["path_length_m"] > 5
+    assert objs["car0"]["reconstructed"] and not objs["car1"]["reconstructed"]
+    assert len(objs["car4"]["poses"]) == len(b.manifest.times) and objs["car4"]["size"] == [4.4, 1.8, 1.5]
+    cap = views_from_capture(b)
+    assert [v.name for v in cap] == [f"{i:05d}" for i in range(len(b.frames("train")))]
+    moved = views_from_capture(b, lateral_shift_m=3.5, height_shift_m=1.0, start_s=0.2, stop_s=0.5, fps=20)
+    assert [round(v.time_s, 6) for v in moved] == [0.2, 0.25, 0.3, 0.35, 0.4, 0.45, 0.5]
+    orig = {round(v.time_s, 6): v.camera.cam_to_world for v in cap}
+    for v in moved:
+        if round(v.time_s, 6) in orig:  # a captured time: the pose shifted 3.5 m left and 1 m up
+            d = v.camera.cam_to_world[:3, 3] - orig[round(v.time_s, 6)][:3, 3]
+            np.testing.assert_allclose(d, [0.0, 3.5, 1.0], atol=1e-9)
+            np.testing.assert_allclose(v.camera.cam_to_world[:3, :3], orig[round(v.time_s, 6)][:3, :3], atol=1e-9)
+    mid = next(v for v in moved if abs(v.time_s - 0.25) < 1e-9)  # interpolated between 0.2 and 0.3
+    np.testing.assert_allclose(mid.camera.cam_to_world[0, 3], (orig[0.2][0, 3] + orig[0.3][0, 3]) / 2, atol=1e-9)
+    for kw, field in (({"start_s": 5.0}, "start_s"), ({"camera": "rear"}, "camera"), ({"split": "x"}, "split"),
+                      ({"fps": 0.0}, "fps"), ({"lateral_shift_m": float("nan")}, "lateral_shift_m")):
+        with pytest.raises(ConfigError, match=field):
+            views_from_capture(b, **kw)

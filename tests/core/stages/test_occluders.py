@@ -1,0 +1,153 @@
+"""core.stages.occluders: facades completed above the captured view for shadow rays only."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from core.conventions import look_at
+from core.errors import ConfigError
+from core.gaussians import Gaussians
+from core.pbr.envmap import EnvironmentMap
+from core.pbr.render import Camera, ClipRenderer, PBRSettings
+from core.scene_graph import SceneGraph
+from core.stages.occluders import OccluderSettings, complete_occluders, facade_columns
+
+
+def _flat(means: np.ndarray, normal, half: float = 0.3, opacity: float = 0.95) -> Gaussians:
+    """Flat disks at ``means`` [N, 3] facing ``normal``, half-width ``half`` metres."""
+    n = len(means)
+    nz = np.asarray(normal, np.float64) / np.linalg.norm(normal)
+    helper = np.array([0.0, 0.0, 1.0]) if abs(nz[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
+    x = np.cross(helper, nz)
+    x /= np.linalg.norm(x)
+    y = np.cross(nz, x)
+    from core.rotations import rotmat_to_quat
+
+    q = rotmat_to_quat(torch.from_numpy(np.stack([x, y, nz], -1)))[None].expand(n, 4)
+    one = torch.ones(n, 1, dtype=torch.float64)
+    return Gaussians.from_activated(torch.from_numpy(means.astype(np.float64)), q.clone(),
+                                    torch.tensor([[half, half, 0.01]], dtype=torch.float64).expand(n, 3).clone(),
+                                    one * opacity, one.expand(n, 3) * 0.5, torch.from_numpy(np.tile(nz, (n, 1))),
+                                    one.expand(n, 3) * 0.5, one * 0.8, one * 0.0)
+
+
+def _wall(x0=0.0, x1=10.0, y=5.0, z1=4.0, step=0.25) -> Gaussians:
+    """A wall at ``y`` facing -y (towards the street at y = 0), from z = 0 to ``z1``."""
+    xs, zs = np.arange(x0 + step / 2, x1, step), np.arange(step / 2, z1, step)
+    X, Z = np.meshgrid(xs, zs, indexing="ij")
+    pts = np.stack([X.ravel(), np.full(X.size, y), Z.ravel()], -1)
+    return _flat(pts, (0.0, -1.0, 0.0), half=step)
+
+
+def _view(eye, target, w=32, h=24, fov_deg=60.0, sky=False, depth=0.0):
+    c2w = look_at(np.asarray(eye, float), np.asarray(target, float))
+    f = w / 2 / math.tan(math.radians(fov_deg) / 2)
+    return (np.asarray(c2w, np.float64), f, f, w / 2, h / 2, w, h, np.full((h, w), sky), np.full((h, w), depth))
+
+
+def test_an_unseen_wall_top_is_extended_to_the_cap_with_wall_disks():
+    s = OccluderSettings(max_height_m=12.0)
+    occ = complete_occluders(_wall(), [], s)  # no frame saw anything above the wall (no path: no continuation)
+    centres, tops, _bottoms, normals = facade_columns(_wall(), s)
+    assert len(centres) == 20 and np.allclose(normals, [0.0, -1.0, 0.0], atol=1e-6)
+    z = occ.means[:, 2].numpy()
+    assert occ.num > 0 and z.min() > tops.min() - 1e-9 and z.max() <= 12.0 + 1e-9
+    # every column runs from its top to the cap in step_m steps
+    assert occ.num == sum(int(np.floor((12.0 - t) / s.step_m)) for t in tops)
+    assert np.allclose(occ.unit_normals().numpy(), [0.0, -1.0, 0.0], atol=1e-5)
+    assert np.allclose(occ.means[:, 1].numpy(), 5.25, atol=0.26)  # on the wall's grid cells
+    assert torch.isfinite(occ.means).all() and (occ.opacities() > 0.9).all()
+
+
+def test_sky_seen_above_the_wall_stops_the_columns_at_the_roof_line():
+    wall = _wall(z1=4.0)
+    # a camera far down the street looking at the wall's upper part: sky everywhere it looks
+    sky_view = _view((-30.0, 0.0, 6.0), (5.0, 5.0, 8.0), sky=True)
+    occ = complete_occluders(wall, [sky_view], OccluderSettings(max_height_m=12.0))
+    free_all = complete_occluders(wall, [], OccluderSettings(max_height_m=12.0))
+    assert occ.num < free_all.num
+    # columns are contiguous from the wall top: no Gaussian above a carved step of its column
+    m = occ.means.numpy()
+    for key in {tuple(np.round(p[:2], 3)) for p in m}:
+        z = np.sort(m[np.all(np.isclose(m[:, :2], key), 1), 2])
+        assert np.allclose(np.diff(z), 0.5, atol=1e-6) if len(z) > 1 else True
+    # a view that saw a surface far behind those points carves them too (seen through)
+    behind = _view((-30.0, 0.0, 6.0), (5.0, 5.0, 8.0), depth=500.0)
+    assert complete_occluders(wall, [behind], OccluderSettings(max_height_m=12.0)).num == occ.num
+
+
+def test_nothing_for_ground_kerbs_or_an_empty_scene():
+    ground = _flat(np.array([[x, y, 0.0] for x in range(10) for y in range(5)], float), (0.0, 0.0, 1.0))
+    assert complete_occluders(ground, []).num == 0
+    low = _wall(z1=1.0)  # below min_wall_height_m: a kerb or a car, not a facade
+    assert complete_occluders(low, []).num == 0
+    assert complete_occluders(Gaussians.empty(torch.float64), []).num == 0
+    assert complete_occluders(_wall(), [], OccluderSettings(enabled=False)).num == 0
+
+
+@pytest.mark.parametrize("field,value", [("cell_m", 0.0), ("step_m", float("nan")), ("opacity", 1.0),
+                                         ("min_count", 0), ("max_height_m", -1.0)])
+def test_settings_are_validated_naming_the_field(field, value):
+    with pytest.raises(ConfigError, match=field):
+        OccluderSettings(**{field: value})
+
+
+def test_scene_graph_keeps_occluders_for_shadows_only(tmp_path):
+    ground = _flat(np.array([[x, y, 0.0] for x in np.arange(0, 8, 0.4) for y in np.arange(-3, 3, 0.4)]),
+                   (0.0, 0.0, 1.0), half=0.4)
+    roof = _flat(np.array([[x, y, 3.0] for x in np.arange(0, 8, 0.4) for y in np.arange(-3, 3, 0.4)]),
+                 (0.0, 0.0, -1.0), half=0.4)
+    graph = SceneGraph(ground, [], torch.tensor([0.0]))
+    graph.occluders = roof
+    assert graph.compose(0.0).num == ground.num and graph.shadow_static().num == ground.num + roof.num
+    graph.save(tmp_path / "g.pt")
+    back = SceneGraph.load(tmp_path / "g.pt")
+    assert back.occluders is not None and torch.equal(back.occluders.means, roof.means)
+    # the PBR pass: the roof shadows the ground under a uniform sky; it is never drawn
+    cam = Camera(look_at(np.array([-1.0, 0.0, 1.5]), np.array([4.0, 0.0, 0.0])), 20.0, 20.0, 16.0, 12.0, 32, 24)
+    env = EnvironmentMap.constant(1.0, 16, 32)
+    s = PBRSettings(rays_per_pixel=16, threads=1)
+    with_roof = ClipRenderer(back, env, s).render(cam)
+    no_roof = SceneGraph(ground, [], torch.tensor([0.0]))
+    without = ClipRenderer(no_roof, env, s).render(cam)
+    o = with_roof.gbuffers["opacity"][..., 0] > 0.5
+    assert torch.equal(with_roof.gbuffers["opacity"], without.gbuffers["opacity"])  # not rasterized
+    assert float(with_roof.hdr[o].mean()) < 0.5 * float(without.hdr[o].mean())
+    # edits keep the static scene's occluders
+    from core.relight import apply_edits
+
+    assert apply_edits(back, []).occluders is back.occluders
+
+
+def test_walls_continue_along_the_path_beyond_what_was_seen():
+    wall = _wall(x0=0.0, x1=10.0, z1=4.0)
+    path = [_view((x, 0.0, 1.5), (x + 10.0, 0.0, 1.5)) for x in (0.0, 5.0)]  # nothing seen through
+    s = OccluderSettings(max_height_m=8.0, extend_m=3.0)
+    occ = complete_occluders(wall, path, s).means.numpy()
+    behind, ahead = occ[occ[:, 0] < 0.0], occ[occ[:, 0] > 10.0]
+    assert len(behind) and len(ahead)
+    assert behind[:, 0].min() >= -3.0 - 0.5 and ahead[:, 0].max() <= 13.0 + 0.5
+    assert behind[:, 2].min() < 0.5 and behind[:, 2].max() > 7.0  # full height, from the wall's foot
+    assert np.allclose(occ[:, 1], occ[0, 1])  # on the wall's own line
+    assert (complete_occluders(wall, path, OccluderSettings(max_height_m=8.0, extend_m=0.0)).means[:, 0] > 0).all()
+    # a frame that saw sky where the continuation would stand carves it
+    seen = _view((-20.0, 5.0, 4.0), (-1.0, 5.0, 4.0), fov_deg=90.0, sky=True)
+    carved = complete_occluders(wall, [path[0], seen, path[1]], s).means.numpy()
+    assert (carved[:, 0] < 0.0).sum() < len(behind)
+
+
+def test_continued_walls_are_as_tall_as_the_roof_line_their_side_showed():
+    wall = _wall(x0=0.0, x1=10.0, z1=4.0)
+    path = [_view((x, 0.0, 1.5), (x + 10.0, 0.0, 1.5)) for x in (0.0, 5.0)]
+    # a frame from across the street saw sky above z ~ 4.4 over the seen wall
+    roofline = _view((5.0, -30.0, 9.0), (5.0, 5.0, 9.0), fov_deg=20.0, sky=True)
+    # (the path direction runs from the first to the last frame: the odd one goes between)
+    occ = complete_occluders(wall, [path[0], roofline, path[1]], OccluderSettings(max_height_m=12.0, extend_m=4.0))
+    m = occ.means.numpy()
+    far_behind = m[m[:, 0] < -1.6]  # outside that frame: only the cap stops these
+    assert len(far_behind) and far_behind[:, 2].max() < 5.0
+    assert m[(m[:, 0] > 0) & (m[:, 0] < 10), 2].max() < 5.0  # the seen wall stops at the roof line too

@@ -1,0 +1,39 @@
+"""The layer rules (pyproject.toml, [tool.importlinter]) hold, checked by import-linter."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _lint(*args: str) -> subprocess.CompletedProcess:
+    exe = Path(sys.executable).with_name("lint-imports")
+    if not exe.is_file():
+        found = shutil.which("lint-imports")
+        if found is None:
+            pytest.fail("lint-imports is not installed (pip install -e '.[test]')")
+        exe = Path(found)
+    return subprocess.run([str(exe), "--no-cache", *args], cwd=REPO, capture_output=True, text=True, timeout=300)
+
+
+def test_the_layer_contracts_are_kept():
+    r = _lint()
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-2000:]
+    assert "4 kept, 0 broken" in r.stdout
+
+
+def test_the_check_sees_imports_inside_functions(tmp_path):
+    """A contract the code breaks on purpose is reported broken: core.stages.pbr imports the PBR
+    pass inside a function."""
+    cfg = tmp_path / "contracts.toml"
+    cfg.write_text('[tool.importlinter]\nroot_packages = ["core"]\n\n[[tool.importlinter.contracts]]\n'
+                   'name = "probe"\ntype = "forbidden"\nsource_modules = ["core.stages.pbr"]\n'
+                   'forbidden_modules = ["core.pbr.render"]\n')
+    r = _lint("--config", str(cfg))
+    assert r.returncode != 0 and "BROKEN" in r.stdout, r.stdout[-2000:]
