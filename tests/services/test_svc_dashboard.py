@@ -318,6 +318,21 @@ def test_dashboard_operations_in_chromium(settings, tmp_path, browser, tiny_scen
     def css(sel):
         return browser.find_elements(By.CSS_SELECTOR, sel)
 
+    def hold_when_running(job_id, timeout=60):
+        """SIGSTOP the work horse once the API reports the job running; returns its pid."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            kids = w.descendants()
+            if not kids:
+                time.sleep(0.01)
+                continue
+            os.kill(kids[0], signal.SIGSTOP)
+            if c.get(f"/jobs/{job_id}").json()["state"] == "running":
+                return kids[0]
+            os.kill(kids[0], signal.SIGCONT)
+            time.sleep(0.02)
+        raise AssertionError(f"job {job_id} never ran: {c.get(f'/jobs/{job_id}').json()['state']}")
+
     try:
         gw, base = start_gateway(st, tmp_path / "gateway.log")
         procs.append(gw)
@@ -339,14 +354,16 @@ def test_dashboard_operations_in_chromium(settings, tmp_path, browser, tiny_scen
         assert banner.value_of_css_property("background-color") == "rgba(198, 40, 40, 1)"
         w = start_worker(st, tmp_path / "worker.log")
         procs.append(w)
+        # the job runs about 2 s: its horse is held (SIGSTOP) once the API reports it running, so
+        # that the page can show it running before it ends
+        horse = hold_when_running(a)
         wait(lambda d: not css("#no-worker-banner"), 30, "the banner to go once a worker runs")
 
         # 2. the work horse is killed mid-job: the job page shows the retry and why
         browser.get(f"{base}/dashboard/jobs/{a}")
-        wait(lambda d: css("#job-summary[data-state='running']") and
-             c.get(f"/jobs/{a}").json()["progress"] > 0.05, 60, "job A to run")
+        wait(lambda d: css("#job-summary[data-state='running']"), 30, "job A's page to show it running")
         assert css("#cancel") and not css("#retry")
-        os.kill(w.descendants()[0], signal.SIGKILL)
+        os.kill(horse, signal.SIGKILL)
         row = wait(lambda d: css("#attempts tr.attempt[data-attempt='1'][data-outcome='retried']"), 15,
                    "the retried attempt")[0]
         assert "killed by signal 9 (SIGKILL)" in row.find_element(By.CSS_SELECTOR, ".reason").text
@@ -371,12 +388,17 @@ def test_dashboard_operations_in_chromium(settings, tmp_path, browser, tiny_scen
                         tmp_path / "b2.zip")  # long enough that it is still running when the button is pressed
         sid_b = c.post("/scenes", content=zb.read_bytes(), headers={"Content-Type": "application/zip"}).json()["id"]
         b = c.post(f"/scenes/{sid_b}/render", json={"fps": 5}).json()["id"]
+        horse_b = hold_when_running(b)  # held so that it is still running when the button is pressed
         browser.get(f"{base}/dashboard/jobs/{b}")
         wait(lambda d: css("#job-summary[data-state='running']"), 60, "job B to run")
         # clicked by script: the live refresh may replace the button between finding and clicking it
         browser.execute_script("document.getElementById('cancel').click()")
         wait(lambda d: "cancel: job is canceled" in d.find_element(By.ID, "action-result").text, 20,
              f"the cancel (job B: {c.get(f'/jobs/{b}').json()['state']})")
+        try:
+            os.kill(horse_b, signal.SIGCONT)  # let it see the cancel and stop (if it was not killed)
+        except ProcessLookupError:
+            pass
         assert c.get(f"/jobs/{b}").json()["state"] == "canceled"
         wait(lambda d: css("#retry"), 10, "the retry button")
         browser.execute_script("document.getElementById('retry').click()")
