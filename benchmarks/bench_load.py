@@ -98,29 +98,12 @@ def busy_processes(exclude: set[int], top: int = 4) -> list[dict]:
 
 
 def make_scene(root: Path) -> Path:
-    import numpy as np
+    """40 random frames of 160x120 with G-buffers, 5 of them test frames, zipped."""
+    from core.bundle import pack_bundle
+    from core.bundle.testing import write_fake_bundle
 
-    from core.bundle import BundleWriter, Camera, pack_bundle
-    from core.conventions import look_at
-
-    rng = np.random.default_rng(0)
-    w, h, n = 160, 120, 40
-    bw = BundleWriter(root / "b", "bench", overwrite=True)
-    bw.set_times([0.1 * t for t in range(n)])
-    bw.add_camera(Camera("front", w, h, w, w, w / 2, h / 2))
-    for t in range(n):
-        nrm = np.zeros((h, w, 3), np.float32)
-        nrm[..., 2] = 1
-        gt = {"rgb": rng.uniform(0, 2, (h, w, 3)).astype(np.float32),
-              "albedo": rng.uniform(0, 1, (h, w, 3)).astype(np.float32),
-              "roughness": rng.uniform(0, 1, (h, w, 1)).astype(np.float32),
-              "metallic": rng.uniform(0, 1, (h, w, 1)).astype(np.float32),
-              "normal": nrm, "depth": rng.uniform(1, 50, (h, w, 1)).astype(np.float32)}
-        bw.add_frame(f"f{t:03d}", "front", t, look_at([t, 0, 1.5], [t + 10.0, 0, 1.0]),
-                     image=rng.integers(0, 255, (h, w, 3), dtype=np.uint8), split="test" if t >= 35 else "train",
-                     ground_truth=gt)
-    bw.set_ground_truth_envmap(np.ones((8, 16, 3), np.float32), "const")
-    return pack_bundle(bw.finish(), root / "bench.zip")
+    return pack_bundle(write_fake_bundle(root / "b", frames=40, width=160, height=120, test_frames=5, name="bench"),
+                       root / "bench.zip")
 
 
 def start(args, env, log: Path) -> subprocess.Popen:

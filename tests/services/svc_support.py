@@ -15,8 +15,9 @@ import uuid
 from contextlib import contextmanager
 from pathlib import Path
 
-import numpy as np
 import pytest
+
+from core.bundle.testing import write_fake_bundle as make_bundle  # noqa: F401  (the one fake-bundle builder)
 
 REPO = Path(__file__).resolve().parents[2]
 REDIS_START = ["redis-server", "--daemonize", "yes", "--bind", "127.0.0.1", "-::1", "--port", "6379", "--save", "",
@@ -146,34 +147,6 @@ def postgres_database():
             _dbs.pop(k).dispose()
         with psycopg.connect(conninfo + " dbname=postgres", autocommit=True) as c:
             c.execute(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)')
-
-
-def make_bundle(root: Path, *, frames: int = 3, width: int = 32, height: int = 24, test_frames: int = 1,
-                with_gt: bool = True, seed: int = 0) -> Path:
-    """A valid bundle with random content (no renderer)."""
-    from core.bundle import BundleWriter, Camera
-    from core.conventions import look_at
-
-    rng = np.random.default_rng(seed)
-    w = BundleWriter(root, f"bundle-{seed}", overwrite=True)
-    w.set_times([0.1 * t for t in range(frames)])
-    w.add_camera(Camera("front", width, height, width, width, width / 2, height / 2))
-    for t in range(frames):
-        gt = None
-        if with_gt:
-            n = np.zeros((height, width, 3), np.float32)
-            n[..., 2] = 1
-            gt = {"rgb": rng.uniform(0, 2, (height, width, 3)).astype(np.float32),
-                  "albedo": rng.uniform(0, 1, (height, width, 3)).astype(np.float32),
-                  "roughness": rng.uniform(0, 1, (height, width, 1)).astype(np.float32),
-                  "metallic": rng.uniform(0, 1, (height, width, 1)).astype(np.float32),
-                  "normal": n, "depth": rng.uniform(1, 50, (height, width, 1)).astype(np.float32)}
-        w.add_frame(f"f{t:03d}", "front", t, look_at([t * 1.0, 0, 1.5], [t + 10.0, 0, 1.0]),
-                    image=rng.integers(0, 255, (height, width, 3), dtype=np.uint8),
-                    split="test" if t >= frames - test_frames else "train", ground_truth=gt)
-    if with_gt:
-        w.set_ground_truth_envmap(np.ones((8, 16, 3), np.float32), "const")
-    return w.finish()
 
 
 def zip_bundle(root: Path, out: Path) -> Path:
