@@ -9,11 +9,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from scipy import stats
 
 from core import conventions
 from core.errors import ConfigError, NumericalError, ShapeError
 from core.pbr.envmap import EnvironmentMap, luminance, rotate_z
+from chi_square import chi_square_pvalue  # tests/chi_square.py
 
 REPO = Path(__file__).resolve().parents[3]
 CITY = REPO / "data" / "hdri" / "city.exr"
@@ -26,17 +26,6 @@ def _gen(seed=0):
 def _random_map(h=8, w=16, seed=0, lo=0.2):
     rng = np.random.default_rng(seed)
     return rng.uniform(lo, 1.0, (h, w, 3)).astype(np.float32)
-
-
-def _chi2_pvalue(observed, expected, min_expected=5.0):
-    observed = np.asarray(observed, np.float64).ravel()
-    expected = np.asarray(expected, np.float64).ravel()
-    small = expected < min_expected
-    obs = np.append(observed[~small], observed[small].sum())
-    exp = np.append(expected[~small], expected[small].sum())
-    keep = exp > 0
-    assert np.isclose(obs.sum(), exp.sum(), rtol=1e-9)
-    return stats.chisquare(obs[keep], exp[keep] * obs.sum() / exp[keep].sum()).pvalue
 
 
 # ---------------------------------------------------------------------------------------------
@@ -134,11 +123,11 @@ def test_chi_square_sampler_against_pdf_with_sub_pixel_bins():
     idx = ((row * w + col) * sub + sr) * sub + sc
     observed = np.bincount(idx, minlength=h * w * sub * sub)
     expected = np.repeat(env.pixel_probabilities().numpy().ravel(), sub * sub) / (sub * sub) * n
-    assert _chi2_pvalue(observed, expected) > 1e-3
+    assert chi_square_pvalue(observed, expected) > 1e-3
     # a wrong density (sin(theta) at the centre instead of the row integral) must fail
     wrong = np.repeat((env.pixel_probabilities().numpy() * 1.0).ravel(), sub * sub)
     wrong = wrong.reshape(h, w, sub, sub) * np.linspace(0.7, 1.3, sub)[None, None, :, None]
-    assert _chi2_pvalue(observed, wrong.ravel() / wrong.sum() * n) < 1e-6
+    assert chi_square_pvalue(observed, wrong.ravel() / wrong.sum() * n) < 1e-6
 
 
 def test_chi_square_sampler_on_city_hdri_coarse_bins():
@@ -151,7 +140,7 @@ def test_chi_square_sampler_on_city_hdri_coarse_bins():
     bins = (r // 16) * 64 + (c // 16)  # 32 x 64 coarse bins of 16x16 pixels
     observed = np.bincount(bins, minlength=32 * 64)
     prob = env.pixel_probabilities().numpy().reshape(32, 16, 64, 16).sum((1, 3)).ravel()
-    assert _chi2_pvalue(observed, prob * n) > 1e-3
+    assert chi_square_pvalue(observed, prob * n) > 1e-3
 
 
 def test_single_bright_pixel_samples_fall_in_that_pixel():
