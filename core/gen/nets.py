@@ -45,6 +45,7 @@ import torch.nn.functional as F
 
 from core.errors import ConfigError, ShapeError
 from core.gen import contract as C
+from core.io.atomic import atomic_output
 
 #: Total down-sampling of the U-Net (stem 2 x two stride-2 levels): H and W must be multiples.
 SPATIAL_MULTIPLE = 8
@@ -296,8 +297,6 @@ def export_onnx(model: _EDMModel, path: str | Path, *, extra_metadata: dict[str,
                 sigma_min: float = 0.002, sigma_max: float = 80.0, example_hw: tuple[int, int] = (32, 48)) -> Path:
     """Export ``model`` to ONNX (opset :data:`ONNX_OPSET`) with dynamic B, F, H, W and write the
     contract metadata (:mod:`core.gen.contract`). The file is written atomically. Returns the path."""
-    import os
-
     import onnx
 
     con = C.get_contract(model.kind)
@@ -308,22 +307,21 @@ def export_onnx(model: _EDMModel, path: str | Path, *, extra_metadata: dict[str,
     dyn: dict[str, dict[int, str]] = {}
     for spec in (*con.inputs, *con.outputs):
         dyn[spec.name] = {i: d for i, d in enumerate(spec.dims) if isinstance(d, str)}
-    tmp = path.with_name(path.name + ".tmp")
     model = model.eval()
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        with torch.no_grad():
-            torch.onnx.export(model, tuple(ex[n] for n in names), str(tmp), dynamo=False,
-                              input_names=names, output_names=[s.name for s in con.outputs],
-                              dynamic_axes=dyn, opset_version=ONNX_OPSET, do_constant_folding=True)
-    m = onnx.load(str(tmp))
-    meta = {C.META_CONTRACT: con.kind, C.META_VERSION: con.version_str, C.META_FRAMES: str(model.frames),
-            C.META_MULTIPLE: str(SPATIAL_MULTIPLE), C.META_SIGMA_DATA: repr(model.sigma_data),
-            C.META_SIGMA_MIN: repr(float(sigma_min)), C.META_SIGMA_MAX: repr(float(sigma_max))}
-    meta.update(extra_metadata or {})
-    onnx.helper.set_model_props(m, meta)
-    onnx.save(m, str(tmp))
-    os.replace(tmp, path)
+    with atomic_output(path, suffix=".onnx") as tmp:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            with torch.no_grad():
+                torch.onnx.export(model, tuple(ex[n] for n in names), tmp, dynamo=False,
+                                  input_names=names, output_names=[s.name for s in con.outputs],
+                                  dynamic_axes=dyn, opset_version=ONNX_OPSET, do_constant_folding=True)
+        m = onnx.load(tmp)
+        meta = {C.META_CONTRACT: con.kind, C.META_VERSION: con.version_str, C.META_FRAMES: str(model.frames),
+                C.META_MULTIPLE: str(SPATIAL_MULTIPLE), C.META_SIGMA_DATA: repr(model.sigma_data),
+                C.META_SIGMA_MIN: repr(float(sigma_min)), C.META_SIGMA_MAX: repr(float(sigma_max))}
+        meta.update(extra_metadata or {})
+        onnx.helper.set_model_props(m, meta)
+        onnx.save(m, tmp)
     return path
 
 
