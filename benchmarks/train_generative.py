@@ -16,11 +16,31 @@ Steps (each skips what is already done, so the script resumes after an interrupt
    ``models/<kind>.onnx`` and its model card with held-out metrics.
 4. ``validate``: the inverse model's metrics on the validation streets.
 
+Randomised data and the out-of-distribution protocol (issue #18; ``core.synth.splits``):
+
+5. ``randomised``: randomised streets (``benchmarks/make_randomised.py``, pinhole, ``--rand-frames``
+   frames per trajectory, no relit sets, one worker) under ``--rand-data``: the test splits
+   (``test_id`` and every ``test_ood_<axis>``, ``--rand-test`` each), ``val`` (``--rand-val``),
+   the old validation / held-out streets v9, v10, h7, h8 under ``--old-data``, then ``train``
+   (``--rand-train``), in that order (the train split grows last, so a stopped run still has every
+   test split). Wall times go to ``<rand-data>/generation.json``.
+6. ``inverse-randomised``: fine-tune the inverse model from ``--init-from`` (default the shipped
+   ``models/inverse_gbuffer.onnx``) on the randomised ``train`` split, ``--steps`` in all, exporting
+   and scoring a snapshot on the ``val`` split (and the old v9/v10) every ``--eval-every`` steps
+   (``<work>/inverse_randomised/log.json``). The checkpoint is saved every 100 steps (resumable).
+   Only validation streets are ever evaluated here.
+7. ``ood``: the shipped model and the best-on-val snapshot on every split (val, test_id, each
+   test_ood_<axis>) and the old streets; replaces ``models/inverse_gbuffer.onnx`` only when the
+   snapshot is better on val and not materially worse on the old streets (``replace_decision``);
+   writes the ``ood`` key of ``benchmarks/results/generative.json`` (other keys kept).
+
 Usage::
 
     python benchmarks/train_generative.py generate prepare            # data (about 2 min a scene)
     python benchmarks/train_generative.py inverse --steps 6000
     python benchmarks/train_generative.py forward --steps 6000
+    # issue #18: randomised data, fine-tune on it, in-distribution and OOD figures
+    python benchmarks/train_generative.py randomised inverse-randomised ood --steps 24000 --threads 1
 
 The held-out evaluation for ``benchmarks/results/generative.json`` is
 ``python benchmarks/bench_generative.py --scenes <data>/h7 <data>/h8``.
@@ -35,6 +55,8 @@ import sys
 import time
 from dataclasses import replace
 from pathlib import Path
+
+import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
@@ -58,7 +80,7 @@ def scene_plan(seeds) -> list[tuple[str, int, str, float]]:
     return out
 
 
-def generate_street(root: Path, seed: int, env: str, rot: float) -> None:
+def generate_street(root: Path, seed: int, env: str, rot: float, workers: int = 2) -> None:
     """One street (``quick`` profile, no relit ground truth) at ``root`` unless it is there."""
     from core.synth import generate_scene, profile
 
@@ -66,7 +88,7 @@ def generate_street(root: Path, seed: int, env: str, rot: float) -> None:
         return
     t = time.perf_counter()
     cfg = profile("quick", seed=seed, envmap=env, envmap_rotation_deg=rot, relight_envmaps=())
-    generate_scene(cfg, root, progress=False, workers=2)
+    generate_scene(cfg, root, progress=False, workers=workers)
     print(f"generated {root.name} (seed {seed}, {env} at {rot:.0f} deg) in {time.perf_counter() - t:.0f} s", flush=True)
 
 
@@ -155,17 +177,292 @@ def annotate_cards(data: Path, seeds, models: Path) -> None:
         card.write_text(json.dumps(d, indent=1))
         print(f"annotated {card}")
 
+# --- issue #18: randomised data, fine-tune, in-distribution and out-of-distribution figures -------
+
+#: The old validation (model choices) and held-out (report) streets of the first protocol.
+OLD_STREETS = (("v9", 9, "sunrise", 90.0), ("v10", 10, "forest", 210.0), ("h7", 7, "city", 45.0), ("h8", 8, "sunset", 135.0))
+OLD_VAL, OLD_HELD = ("v9", "v10"), ("h7", "h8")
+#: The inverse model's targets on the out-of-distribution test streets (issue #18).
+OOD_TARGETS = {"albedo_si_psnr": 19.0, "normal_mae_deg": 12.0, "roughness_rmse": 0.15, "metallic_rmse": 0.10}
+#: Worsening on the old streets (v9, v10, h7, h8) that still counts as "not worse in a way that
+#: matters" when deciding to replace the shipped model (never used to pick steps or settings).
+MATERIAL = {"albedo_si_psnr": 0.5, "normal_mae_deg": 1.0, "roughness_rmse": 0.02, "metallic_rmse": 0.02}
+
+
+def val_score(m: dict) -> float:
+    """One number per model on a set of streets, lower is better: the mean of each figure's ratio
+    to its target (albedo as the linear-error ratio 10^((19 - si-PSNR) / 20))."""
+    t = OOD_TARGETS
+    return float(np.mean([10 ** ((t["albedo_si_psnr"] - m["albedo_si_psnr"]) / 20), m["normal_mae_deg"] / t["normal_mae_deg"],
+                          m["roughness_rmse"] / t["roughness_rmse"], m["metallic_rmse"] / t["metallic_rmse"]]))
+
+
+def split_dirs(rand: Path, split: str) -> list[Path]:
+    return sorted(d for d in (rand / split).glob(f"{split}_*") if (d / "bundle.json").is_file())
+
+
+def rand_options(frames: int, workers: int) -> list[str]:
+    return ["--pinhole", "--set", f"num_frames={frames}", "--set", "relight_envmaps=[]", "--workers", str(workers)]
+
+
+def generate_randomised(rand: Path, old: Path, n_train: int, n_val: int, n_test: int, frames: int, workers: int,
+                        old_names=OLD_HELD, train_budget_s: float | None = None) -> None:
+    """Randomised splits (tests and val first, then the old streets ``old_names``, then train,
+    stopping early once ``train_budget_s`` seconds of train generation have passed); wall times to
+    ``<rand>/generation.json`` (a resumed split records only the time of the bundles it made)."""
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    import make_randomised
+
+    from core.synth.splits import HELD_OUT
+
+    log_p = rand / "generation.json"
+    log = json.loads(log_p.read_text()) if log_p.is_file() else {}
+    rand.mkdir(parents=True, exist_ok=True)
+
+    def record(key, t0, n):
+        log[key] = {"bundles": n, "wall_s_last_call": round(time.perf_counter() - t0, 1),
+                    "options": rand_options(frames, workers)}
+        log_p.write_text(json.dumps(log, indent=1))
+
+    plan = [("test_id", n_test)] + [(f"test_ood_{a}", n_test) for a in HELD_OUT] + [("val", n_val)]
+    for split, n in plan:
+        t0 = time.perf_counter()
+        make_randomised.main(["--split", split, "--count", str(n), "--out", str(rand), *rand_options(frames, workers)])
+        record(split, t0, len(split_dirs(rand, split)))
+    t0 = time.perf_counter()
+    for name, seed, env, rot in OLD_STREETS:
+        if name in old_names:
+            generate_street(old / name, seed, env, rot, workers=workers)
+    record("old_streets", t0, sum((old / n / "bundle.json").is_file() for n, *_ in OLD_STREETS))
+    t0 = time.perf_counter()
+    for i in range(n_train):
+        if train_budget_s is not None and time.perf_counter() - t0 > train_budget_s:
+            print(f"train generation budget ({train_budget_s:.0f} s) spent after {i} streets", flush=True)
+            break
+        make_randomised.main(["--split", "train", "--start", str(i), "--count", "1", "--out", str(rand),
+                              *rand_options(frames, workers)])
+        record("train", t0, len(split_dirs(rand, "train")))
+
+
+def eval_streets(onnx: Path, dirs, threads: int) -> dict:
+    """Inverse-model metrics per street (mean over its clips) and their mean over the streets."""
+    from core.gen.data import DataSettings
+    from core.gen.train import evaluate_model
+
+    per = {Path(d).name: evaluate_model("inverse_gbuffer", onnx, [d], DataSettings(forward_source="degrade"), threads=threads)
+           for d in dirs}
+    keys = sorted({k for m in per.values() for k in m})
+    return {"mean": {k: float(np.mean([m[k] for m in per.values() if k in m])) for k in keys}, "streets": len(per),
+            "per_street": per}
+
+
+def finetune_randomised(rand: Path, old: Path, work: Path, init_from: Path, steps: int, eval_every: int, lr: float,
+                        p_mean: float, batch: int, crop: int, threads: int) -> dict:
+    """Fine-tune the inverse model on the randomised train split; every ``eval_every`` steps export
+    a snapshot and score it on the validation streets only (randomised val, old v9/v10)."""
+    from core.gen.data import DataSettings, load_clips
+    from core.gen.train import TrainSettings, train_model
+
+    out = work / f"inverse_randomised_lr{lr:g}"  # one run per learning rate, each resumable
+    snaps = out / "snapshots"
+    snaps.mkdir(parents=True, exist_ok=True)
+    shipped = work / "inverse_randomised_shipped.onnx"  # the model before the fine-tune ("before")
+    if not shipped.is_file():
+        shutil.copy2(init_from, shipped)
+    train_dirs, val = split_dirs(rand, "train"), split_dirs(rand, "val")
+    old_val = [old / n for n in OLD_VAL if (old / n / "bundle.json").is_file()]
+    if not train_dirs or not val:
+        raise SystemExit(f"no randomised train/val bundles under {rand} (run the randomised step first)")
+    log_p = out / "log.json"
+    log = json.loads(log_p.read_text()) if log_p.is_file() else {"entries": []}
+    log.update({"init_from": str(shipped), "train": [d.name for d in train_dirs], "val": [d.name for d in val],
+                "old_val": [d.name for d in old_val], "lr": lr, "p_mean": p_mean, "batch": batch, "crop": crop,
+                "threads": threads, "score": "val_score (benchmarks/train_generative.py)"})
+    done = {e["step"] for e in log["entries"]}
+
+    def evaluate(step, onnx, extra):
+        t0 = time.perf_counter()
+        v, ov = eval_streets(onnx, val, threads), eval_streets(onnx, old_val, threads) if old_val else None
+        e = {"step": step, **extra, "val": v, "old_val": ov, "score_val": val_score(v["mean"]),
+             "eval_wall_s": round(time.perf_counter() - t0, 1)}
+        log["entries"] = sorted([x for x in log["entries"] if x["step"] != step] + [e], key=lambda x: x["step"])
+        log_p.write_text(json.dumps(log, indent=1))
+        print(f"step {step}: val {json.dumps({k: round(x, 3) for k, x in v['mean'].items()})} "
+              f"score {e['score_val']:.3f}", flush=True)
+
+    if 0 not in done:
+        evaluate(0, shipped, {"note": "the shipped model (init_from)"})
+    s = replace(TrainSettings(), data=DataSettings(forward_source="degrade"), batch=batch, crop=crop, frames=1,
+                checkpoint_every=100, threads=threads, p_mean=p_mean, lr=lr, init_from=str(shipped))
+    clips = None
+    for n in range(eval_every, steps + 1, eval_every):
+        snap = snaps / f"inverse_gbuffer_{n:06d}.onnx"
+        if n in done and snap.is_file():
+            continue
+        if clips is None:
+            t0 = time.perf_counter()
+            clips = [c for d in train_dirs for c in load_clips(d, s.data, ("inverse",))]
+            print(f"loaded {len(clips)} clips of {len(train_dirs)} streets in {time.perf_counter() - t0:.0f} s", flush=True)
+        res = train_model("inverse_gbuffer", train_dirs, out, n, settings=s, clips=clips, export=True)
+        shutil.copy2(res.onnx_path, snap)
+        shutil.copy2(res.card_path, snap.with_name(snap.stem + ".card.json"))
+        evaluate(n, snap, {"train_wall_s": round(res.wall_s, 1), "loss_mean200": float(np.mean(res.losses[-200:]))})
+    return log
+
+
+def replace_decision(before: dict, after: dict) -> dict:
+    """Replace the shipped model only when the snapshot scores better on the randomised val split
+    and is not worse by more than :data:`MATERIAL` on any figure of the old streets (v9/v10 mean and
+    h7/h8 mean: a veto only)."""
+    better = after["val"]["score"] < before["val"]["score"]
+    worse = []
+    for key in ("old_val", "old_held_out"):
+        if before.get(key) is None or after.get(key) is None:
+            continue
+        b, a = before[key]["mean"], after[key]["mean"]
+        for k, tol in MATERIAL.items():
+            d = (b[k] - a[k]) if k == "albedo_si_psnr" else (a[k] - b[k])
+            if d > tol:
+                worse.append(f"{key}.{k}: {b[k]:.3f} -> {a[k]:.3f}")
+    return {"better_on_val": bool(better), "materially_worse_on_old": worse, "replace": bool(better and not worse),
+            "rule": "val_score lower on the randomised val split, and no figure of the old v9/v10 or h7/h8 means "
+                    f"worse by more than {MATERIAL}"}
+
+
+def ood_report(rand: Path, old: Path, work: Path, models: Path, threads: int, results: Path, wall: dict,
+               frames: int = 4) -> dict:
+    """Before (shipped) / after (best-on-val snapshot) on every split; decide; write the ``ood`` key."""
+    from dataclasses import asdict
+
+    from core.synth.randomise import RandomisationSettings
+    from core.synth.splits import HELD_OUT, describe
+
+    runs = {p.parent.name: json.loads(p.read_text()) for p in sorted(work.glob("inverse_randomised_lr*/log.json"))}
+    if not runs:
+        raise SystemExit(f"no fine-tune runs under {work} (run the inverse-randomised step first)")
+    cands = [(name, e) for name, lg in runs.items() for e in lg["entries"] if e["step"] > 0]
+    run, best = min(cands, key=lambda c: c[1]["score_val"])
+    log, out = runs[run], work / run
+    models_ = {"before": work / "inverse_randomised_shipped.onnx",
+               "after": out / "snapshots" / f"inverse_gbuffer_{best['step']:06d}.onnx"}
+    splits = ["test_id"] + [f"test_ood_{a}" for a in HELD_OUT]
+    figs = {}
+    for tag, onnx in models_.items():
+        f = {}
+        entry = next(e for e in log["entries"] if e["step"] == (0 if tag == "before" else best["step"]))
+        f["val"] = {**entry["val"], "score": entry["score_val"]}
+        if entry.get("old_val"):
+            f["old_val"] = entry["old_val"]
+        held = [old / n for n in OLD_HELD if (old / n / "bundle.json").is_file()]
+        if held:
+            f["old_held_out"] = eval_streets(onnx, held, threads)
+        for sp in splits:
+            f[sp] = eval_streets(onnx, split_dirs(rand, sp), threads)
+        figs[tag] = f
+        print(tag, json.dumps({k: {m: round(x, 3) for m, x in v["mean"].items()} for k, v in f.items()}), flush=True)
+    dec = replace_decision(figs["before"], figs["after"])
+    if dec["replace"]:
+        shutil.copy2(models_["after"], models / "inverse_gbuffer.onnx")
+    # per axis, in-distribution beside out-of-distribution
+    per_axis = {}
+    for a in HELD_OUT:
+        per_axis[a] = {tag: {"in_distribution": figs[tag]["test_id"]["mean"],
+                             "ood": figs[tag][f"test_ood_{a}"]["mean"]} for tag in figs}
+        per_axis[a]["targets_met_after"] = {k: (figs["after"][f"test_ood_{a}"]["mean"][k] >= v if k == "albedo_si_psnr"
+                                                else figs["after"][f"test_ood_{a}"]["mean"][k] <= v)
+                                            for k, v in OOD_TARGETS.items()}
+    ood_mean = {tag: {k: float(np.mean([figs[tag][f"test_ood_{a}"]["mean"][k] for a in HELD_OUT])) for k in OOD_TARGETS}
+                for tag in figs}
+    gen = json.loads((rand / "generation.json").read_text()) if (rand / "generation.json").is_file() else {}
+    settings = RandomisationSettings(distortion_prob=0.0)
+    res = {
+        "model": "inverse_gbuffer", "sampler": "core.gen.edm.GENERATE_SAMPLER (one Euler step from sigma 80)",
+        "metrics": "per street: mean over its clips of albedo si-PSNR (dB), roughness / metallic RMSE, normal MAE "
+                   "(deg), non-sky pixels (core.gen.train.evaluate_model); split figure: mean over its streets",
+        "targets_ood": OOD_TARGETS,
+        "held_out_regions": describe(),
+        "data_ranges": {k: v for k, v in asdict(settings).items()},
+        "data": {"generator": "benchmarks/make_randomised.py " + " ".join(rand_options(frames, 1)),
+                 "splits": {sp: [d.name for d in split_dirs(rand, sp)] for sp in ["train", "val"] + splits},
+                 "old_streets": "quick profile (240x160, 10 frames per trajectory), v9/v10 validation, h7/h8 held out "
+                                "(the first protocol's streets, regenerated here)",
+                 "generation": gen},
+        "training": {k: log[k] for k in ("lr", "p_mean", "batch", "crop", "threads")} | {
+            "init_from": "the shipped models/inverse_gbuffer.onnx (sha256 in before_sha256)",
+            "chosen_run": run, "chosen_step": best["step"],
+            "chosen_on": "randomised val split (val_score: learning rate and step), never a test split",
+            "train_wall_s": round(sum(e.get("train_wall_s", 0.0) for _, e in cands), 1),
+            "val_curves": {name: [{"step": e["step"], "score_val": round(e["score_val"], 4),
+                                   "train_wall_s": e.get("train_wall_s"),
+                                   **{k: round(v, 4) for k, v in e["val"]["mean"].items()}} for e in lg["entries"]]
+                           for name, lg in runs.items()}},
+        "before": figs["before"], "after": figs["after"],
+        "per_axis": per_axis, "ood_mean": ood_mean,
+        "decision": dec, "wall_s": wall,
+    }
+    from core.gen.train import _sha256
+
+    res["before_sha256"] = _sha256(models_["before"])
+    res["after_sha256"] = _sha256(models_["after"])
+    update_card(models, out / "snapshots" / f"inverse_gbuffer_{best['step']:06d}.card.json", res)
+    d = json.loads(results.read_text()) if results.is_file() else {}
+    d["ood"] = res
+    results.write_text(json.dumps(d, indent=1))
+    print(json.dumps({"decision": dec, "ood_mean": ood_mean}, indent=1), flush=True)
+    return res
+
+
+def update_card(models: Path, snap_card: Path, res: dict) -> None:
+    """The model card of ``models/inverse_gbuffer.onnx``: the snapshot's card (plus the previous
+    card's history) when it replaced the model, else the shipped card; either way with the data
+    ranges, the held-out regions and the in-distribution / OOD figures of the file it describes."""
+    card_p = models / "inverse_gbuffer.card.json"
+    old = json.loads(card_p.read_text())
+    tag = "after" if res["decision"]["replace"] else "before"
+    if tag == "after":
+        card = json.loads(snap_card.read_text())
+        card["training"]["data_dirs"] = [Path(d).name for d in card["training"]["data_dirs"]]
+        card["training"]["fine_tuned_from"] = {"file_sha256": old["file"]["sha256"], "training": old["training"],
+                                               "validation": old.get("validation"), "metrics_h7_h8": old.get("metrics")}
+        card["training"]["schedule"] = (f"fine-tuned {res['training']['chosen_step']} steps from the shipped model on the "
+                                        f"randomised train split, lr {res['training']['lr']}, ln sigma centred at "
+                                        f"{res['training']['p_mean']}, crop {res['training']['crop']}, "
+                                        f"{res['training']['threads']} torch thread(s); step chosen on the val split")
+        card["sampler"] = old.get("sampler")
+        card["metrics"] = res["after"]["old_held_out"]["mean"] if res["after"].get("old_held_out") else {}
+        card["metrics_note"] = "metrics: the old held-out streets h7, h8 (in-distribution of the first generator)"
+    else:
+        card = old
+    f = res[tag]
+    card["data_ranges"] = res["data_ranges"]
+    card["held_out_regions"] = res["held_out_regions"]
+    card["randomised_data"] = res["data"]["splits"]
+    card["figures"] = {
+        "note": "one-step sampler, non-sky pixels, mean over streets; in_distribution = randomised test_id split; "
+                "ood.<axis> = test_ood_<axis> (that axis from its held-out region only); old_held_out = h7, h8",
+        "targets_ood": res["targets_ood"],
+        "validation_randomised": f["val"]["mean"],
+        "in_distribution": f["test_id"]["mean"],
+        "ood": {a: f[f"test_ood_{a}"]["mean"] for a in res["per_axis"]},
+        "ood_mean": res["ood_mean"][tag],
+        "old_held_out": f["old_held_out"]["mean"] if f.get("old_held_out") else None,
+        "decision": res["decision"],
+    }
+    card_p.write_text(json.dumps(card, indent=2, default=str))
+    print(f"updated {card_p} ({tag})", flush=True)
+
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("steps_to_run", nargs="+", choices=["generate", "prepare", "inverse", "forward", "cards", "validate"])
+    ap.add_argument("steps_to_run", nargs="+", choices=["generate", "prepare", "inverse", "forward", "cards", "validate",
+                                                        "randomised", "inverse-randomised", "ood"])
     ap.add_argument("--data", type=Path, default=REPO / "scenes" / "gen", help="scene directory")
     ap.add_argument("--work", type=Path, default=REPO / "runs" / "gen", help="checkpoints")
     ap.add_argument("--models", type=Path, default=REPO / "models")
     ap.add_argument("--seeds", type=int, nargs="+", default=list(range(100, 112)))
     ap.add_argument("--steps", type=int, default=6000)
     ap.add_argument("--batch", type=int, default=4)
-    ap.add_argument("--crop", type=int, default=64)
+    ap.add_argument("--crop", type=int, default=64, help="crop size (inverse-randomised: 96 when left at 64)")
     ap.add_argument("--threads", type=int, default=2, help="torch threads of the training")
     ap.add_argument("--p-mean", type=float, default=None,
                     help="mean of ln sigma in training (EDM -1.2; the inverse model predicts from the frames "
@@ -173,10 +470,33 @@ def main(argv=None) -> int:
     ap.add_argument("--init-from", type=Path, default=None,
                     help="fine-tune: start from the weights of this exported ONNX model (same network)")
     ap.add_argument("--lr", type=float, default=None, help="Adam learning rate (default TrainSettings.lr)")
+    ap.add_argument("--rand-data", type=Path, default=Path("/root/brdf_data/randomised"),
+                    help="randomised bundles (<split>/<split>_<i>)")
+    ap.add_argument("--old-data", type=Path, default=Path("/root/brdf_data/old"), help="v9, v10, h7, h8")
+    ap.add_argument("--rand-train", type=int, default=28)
+    ap.add_argument("--rand-val", type=int, default=3)
+    ap.add_argument("--rand-test", type=int, default=2, help="streets of test_id and of each test_ood_<axis>")
+    ap.add_argument("--rand-frames", type=int, default=4, help="frames per trajectory (two trajectories)")
+    ap.add_argument("--workers", type=int, default=1, help="render processes of the generation")
+    ap.add_argument("--old-streets", nargs="*", default=list(OLD_HELD), help="old-protocol streets to generate (of v9 v10 h7 h8)")
+    ap.add_argument("--train-budget-min", type=float, default=None, help="stop the train split's generation after this")
+    ap.add_argument("--eval-every", type=int, default=2000, help="inverse-randomised: steps between val snapshots")
+    ap.add_argument("--results", type=Path, default=REPO / "benchmarks" / "results" / "generative.json")
     a = ap.parse_args(argv)
     a.data.mkdir(parents=True, exist_ok=True)
+    wall: dict = {}
     for step in a.steps_to_run:
-        if step == "generate":
+        t_step = time.perf_counter()
+        if step == "randomised":
+            generate_randomised(a.rand_data, a.old_data, a.rand_train, a.rand_val, a.rand_test, a.rand_frames, a.workers,
+                                tuple(a.old_streets), a.train_budget_min * 60 if a.train_budget_min else None)
+        elif step == "inverse-randomised":
+            finetune_randomised(a.rand_data, a.old_data, a.work, a.init_from or a.models / "inverse_gbuffer.onnx", a.steps,
+                                a.eval_every, a.lr or 1e-4, a.p_mean if a.p_mean is not None else 2.0, a.batch,
+                                96 if a.crop == 64 else a.crop, a.threads)
+        elif step == "ood":
+            ood_report(a.rand_data, a.old_data, a.work, a.models, a.threads, a.results, wall, a.rand_frames)
+        elif step == "generate":
             generate(a.data, a.seeds)
         elif step == "prepare":
             prepare(a.data, a.seeds)
@@ -187,6 +507,8 @@ def main(argv=None) -> int:
         else:
             train({"inverse": "inverse_gbuffer", "forward": "forward_denoiser"}[step], a.data, a.seeds, a.steps,
                   a.work, a.models, a.batch, a.crop, a.threads, a.p_mean, a.init_from, a.lr)
+        wall[step] = round(time.perf_counter() - t_step, 1)
+        print(f"step {step}: {wall[step]:.0f} s", flush=True)
     return 0
 
 
