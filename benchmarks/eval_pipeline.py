@@ -31,6 +31,8 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from core.stages.chain import STAGES  # noqa: E402
+
 #: name -> (role, seed, map, rotation in degrees). City and sunrise are the sunny maps.
 STREETS = {
     "dev1": ("dev", 101, "city", 60.0),
@@ -41,12 +43,32 @@ STREETS = {
 #: How the streets are generated: the quick synth profile at 16 + 16 frames, 128 samples per
 #: pixel, relit ground truth under three held-back maps on every 4th test frame.
 STREET_SETTINGS = ("relight_every=4", "num_frames=16", "spp=128")
-#: Pipeline variants (the paper's Table 2 rows): stages and stage overrides.
+#: Pipeline variants (the paper's Table 2 rows): stages, stage overrides, the denoiser of the
+#: evaluation's renders, and ``seed``: ``(row, stages)`` whose finished stage directories are copied
+#: from that row's run of the same street first (the same stage with the same settings is not
+#: run twice: an ablation row differs from its seed only in what it leaves out).
+ALL_STAGES = STAGES
 NO_PRIORS = {"lambda_normal": 0.0, "lambda_albedo": 0.0, "lambda_roughness": 0.0, "lambda_metallic": 0.0}
 ROWS = {
-    "full": {"stages": None, "overrides": {}, "denoiser": "oidn"},
+    "full": {"stages": None, "overrides": {}, "denoiser": "oidn", "seed": None},
     "colour_only": {"stages": ["volume"], "overrides": {"volume": {**NO_PRIORS, "lambda_prior_depth": 0.0}},
-                    "denoiser": "oidn"},
+                    "denoiser": "oidn", "seed": None},
+    # Table 2 "w/o PBR optim.": volume, refinement and volume2 only; materials from the Gaussians,
+    # no recovered lighting (no re-render, no sun)
+    "no_pbr_optim": {"stages": ["volume", "generative_refine", "volume2"], "overrides": {}, "denoiser": "oidn",
+                     "seed": ("full", ("volume", "generative_refine", "volume2"))},
+    # Table 2 "w/o gen. optim.": no inverse-model priors and no refinement: the colour-only volume
+    # stage, then pbr and joint with every prior weight at 0
+    "no_gen_optim": {"stages": ["volume", "pbr", "joint"],
+                     "overrides": {"volume": {**NO_PRIORS, "lambda_prior_depth": 0.0},
+                                   "joint": {**NO_PRIORS, "lambda_prior_depth": 0.0}},
+                     "denoiser": "oidn", "seed": ("colour_only", ("volume",))},
+    # Table 2 "w/o gen. rendering": the full reconstruction, its physical render shown as it is
+    # (no generative forward pass, no denoiser) ...
+    "no_gen_render": {"stages": None, "overrides": {}, "denoiser": "none", "seed": ("full", ALL_STAGES)},
+    # ... and with the generative forward pass (the diffusion model, SDEdit from the physical
+    # render) instead of the product's default OIDN denoiser
+    "gen_render": {"stages": None, "overrides": {}, "denoiser": "diffusion", "seed": ("full", ALL_STAGES)},
 }
 KEYS = ("albedo_si_psnr", "roughness_rmse", "metallic_rmse", "normal_mae_deg", "nvs_psnr", "nvs_ssim", "nvs_flip",
         "rerender_psnr", "relight_psnr", "relight_ssim", "relight_flip", "relight_unrelit_input_ssim",
@@ -79,12 +101,44 @@ def make_street(data: Path, name: str) -> Path:
     return out
 
 
-def run_row(scene: Path, run_dir: Path, profile: str, row: str) -> dict:
-    """Reconstruct (resuming a kept run) and evaluate; the evaluation summary plus timings."""
+def seed_run(src: Path, dst: Path, stages) -> None:
+    """Copy ``stages``' finished directories (and the cached priors) of the run ``src`` into a new
+    run ``dst``; nothing is copied into an existing run."""
+    import shutil
+
+    from core.stages.chain import RUN_FILE, RunDir
+
+    if (dst / RUN_FILE).is_file():
+        return
+    run = RunDir(src)
+    missing = [s for s in stages if not run.is_done(s)]
+    if missing:
+        raise SystemExit(f"{src}: stages {missing} are not done (run its row first)")
+    dst.mkdir(parents=True, exist_ok=True)
+    for st in stages:
+        shutil.copytree(src / st, dst / st, dirs_exist_ok=True)
+    if (src / "priors").is_dir():
+        shutil.copytree(src / "priors", dst / "priors", dirs_exist_ok=True)
+    shutil.copy2(src / RUN_FILE, dst / RUN_FILE)
+
+
+def run_row(scene: Path, runs: Path, prefix: str, profile: str, row: str) -> dict:
+    """Reconstruct (resuming a kept run; a seeded row first copies its seed row's stages, running
+    the seed row when needed) and evaluate; the evaluation summary plus timings."""
     from core.evaluate import EvalSettings, evaluate_run
     from core.stages.chain import RUN_FILE, RunDir, run_pipeline
 
     spec = ROWS[row]
+    run_dir = runs / f"{prefix}_{profile}_{row}"
+    seeded: tuple = ()
+    if spec["seed"] is not None:
+        src_row, seeded = spec["seed"]
+        src = runs / f"{prefix}_{profile}_{src_row}"
+        if not ((src / RUN_FILE).is_file() and all(RunDir(src).is_done(st) for st in seeded)):
+            print(f"    seed row {src_row} first", flush=True)
+            run_pipeline(scene, src, profile, stages=ROWS[src_row]["stages"], overrides=ROWS[src_row]["overrides"],
+                         resume=(src / RUN_FILE).is_file(), progress=False)
+        seed_run(src, run_dir, seeded)
     t0 = time.perf_counter()
     res = run_pipeline(scene, run_dir, profile, stages=spec["stages"], overrides=spec["overrides"],
                        resume=(run_dir / RUN_FILE).is_file(), progress=False,
@@ -95,7 +149,8 @@ def run_row(scene: Path, run_dir: Path, profile: str, row: str) -> dict:
     stage_seconds = {n: float((run.summary(n) or {}).get("seconds") or 0.0) for n in res}
     return {**{k: ev["summary"].get(k) for k in KEYS}, "stage_seconds": stage_seconds,
             "pipeline_seconds": round(sum(stage_seconds.values()), 1), "wall_seconds_this_call": round(wall, 1),
-            "evaluation_seconds": ev["seconds"]}
+            "stages_reused_from": spec["seed"][0] if seeded else None,
+            "evaluation_seconds": ev["seconds"], "denoiser": spec["denoiser"]}
 
 
 def mean_row(rows: list[dict]) -> dict:
@@ -140,14 +195,13 @@ def main() -> int:
         scene = make_street(data, name)
         for row in rows:
             print(f"{name} ({role}) {row} at {a.profile} ...", flush=True)
-            r = run_row(scene, data / "runs" / f"{name}_{a.profile}_{row}", a.profile, row)
+            r = run_row(scene, data / "runs", name, a.profile, row)
             per.setdefault(row, {}).setdefault(a.profile, {})[name] = {"role": role, **r}
             out_path.write_text(json.dumps(result, indent=1))
     if a.default_scene:
         for row in rows:
             print(f"default scene {row} at {a.default_profile} ...", flush=True)
-            r = run_row(REPO / "data" / "scenes" / "default", data / "runs" / f"default_{a.default_profile}_{row}",
-                        a.default_profile, row)
+            r = run_row(REPO / "data" / "scenes" / "default", data / "runs", "default", a.default_profile, row)
             result.setdefault("default_scene", {}).setdefault(row, {})[a.default_profile] = r
             out_path.write_text(json.dumps(result, indent=1))
     # the rows: means over the test streets (dev beside, as <row>_dev), per profile; the row's

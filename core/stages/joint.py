@@ -51,7 +51,10 @@ class JointSettings:
     lambda_opacity: float = 0.05
     """Weight of the opacity-vs-sky BCE (supplement: 0.05)."""
     lambda_depth: float = 0.01
-    """Weight of the LiDAR depth and aligned prior depth terms (supplement: 0.01)."""
+    """Weight of the LiDAR depth term (supplement: 0.01)."""
+    lambda_prior_depth: float = 0.01
+    """Weight of the prior depth term, aligned per frame by a closed-form scale and shift
+    (supplement: 0.01, as the LiDAR term; 0 with the other prior weights = no generative priors)."""
     lambda_normal: float = 0.3
     """Weight of the normal prior term (supplement, joint stage: 0.3)."""
     lambda_albedo: float = 0.4
@@ -189,7 +192,7 @@ def run_stage(ctx) -> dict:
             history = state["history"]
             start = int(state["iteration"]) + 1
         weights = {"normal": cfg.lambda_normal, "albedo": cfg.lambda_albedo, "roughness": cfg.lambda_roughness,
-                   "metallic": cfg.lambda_metallic, "depth": cfg.lambda_depth}
+                   "metallic": cfg.lambda_metallic, "depth": cfg.lambda_prior_depth}
         bar = tqdm(range(start, cfg.iterations + 1), desc="joint", unit="it", disable=not ctx.progress,
                    initial=start - 1, total=cfg.iterations)
         every = max(1, cfg.iterations // 10)
