@@ -42,7 +42,10 @@ from __future__ import annotations
 
 import math
 import os
+import threading
 import time
+from collections import OrderedDict
+from contextvars import ContextVar
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -417,6 +420,110 @@ def render_pbr(gbuf, camera, env: EnvironmentMap, *, settings: PBRSettings | Non
     return PBRResult(hdr, ldr, lr, samples, gb, timings, counters)
 
 
+#: Frame contexts kept for reuse across clips (:class:`ClipHook` with ``reuse_across_clips``):
+#: the latest few, least recently used dropped first.
+SHARED_CONTEXTS = 2
+_shared: "OrderedDict[tuple, FrameContext]" = OrderedDict()
+_shared_lock = threading.Lock()
+_clip_hook: ContextVar["ClipHook | None"] = ContextVar("clip_hook", default=None)
+
+
+def gaussians_fingerprint(g) -> str:
+    """A content hash of Gaussians' shadow-casting fields (means, rotations, scales, opacities):
+    clips share shadow rays only when their shadow casters are the same to the bit."""
+    import hashlib
+
+    if g is None or g.num == 0:
+        return "empty"
+    h = hashlib.blake2b(digest_size=16)
+    for k in ("means", "quats", "log_scales", "opacity_logits"):
+        h.update(getattr(g, k).detach().to(torch.float64).contiguous().numpy().tobytes())
+    return h.hexdigest()
+
+
+def _env_fingerprint(env: EnvironmentMap) -> str:
+    import hashlib
+
+    return hashlib.blake2b(env.radiance_map().detach().to(torch.float32).contiguous().numpy().tobytes(),
+                           digest_size=16).hexdigest()
+
+
+def clear_shared_contexts() -> None:
+    """Forget every frame context kept for reuse across clips."""
+    with _shared_lock:
+        _shared.clear()
+
+
+class ClipHook:
+    """What a caller wants of the :class:`ClipRenderer` built inside a function it does not
+    control (:func:`core.relight.render_clip`); install it with ``with hook:``.
+
+    ``reuse_across_clips``: the frame context (the static shadow-ray BVH; with the same
+    environment map and sampling, the visibility cache and the map's kernel tables too) comes from
+    a clip rendered before in this process when its static shadow casters are the same
+    (:func:`gaussians_fingerprint`), and is kept for the next (:data:`SHARED_CONTEXTS`). A relight
+    request after another of the same reconstruction then builds no BVH; one under the same map
+    starts with a warm visibility cache.
+
+    Records over the frames rendered while installed: ``frames``, ``samples`` and
+    ``shaded_pixels`` (what the adaptive sampler spent), ``reused`` (what came from an earlier
+    clip: None, ``"bvh"`` or ``"bvh+visibility"``) and ``setup_seconds``."""
+
+    def __init__(self, reuse_across_clips: bool = False):
+        self.reuse_across_clips = bool(reuse_across_clips)
+        self.frames = 0
+        self.samples = 0
+        self.shaded_pixels = 0
+        self.reused: str | None = None
+        self.setup_seconds = 0.0
+        self._token = None
+
+    def __enter__(self) -> "ClipHook":
+        self._token = _clip_hook.set(self)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        _clip_hook.reset(self._token)
+
+    def context(self, env: EnvironmentMap, settings: "PBRSettings", shadow_static) -> FrameContext:
+        """The frame context of a new clip (shared or new, see the class docstring)."""
+        t0 = time.perf_counter()
+        try:
+            if not (self.reuse_across_clips and settings.shadows and shadow_static is not None):
+                return FrameContext(env, settings, static_gaussians=shadow_static)
+            g_key = (gaussians_fingerprint(shadow_static), settings.trace)
+            full_key = g_key + (_env_fingerprint(env), settings.backend, settings.reuse_visibility,
+                                settings.cache_pool, settings.cache_cell_px, settings.split[0], settings.seed)
+            with _shared_lock:
+                ctx = _shared.get(full_key)
+                if ctx is not None:
+                    _shared.move_to_end(full_key)
+                    self.reused = "bvh+visibility" if ctx.cache is not None else "bvh"
+                    return ctx
+                tracer = next((c.static_tracer for k, c in reversed(_shared.items())
+                               if k[:2] == g_key and c.static_tracer is not None), None)
+            if tracer is not None:
+                self.reused = "bvh"
+            ctx = FrameContext(env, settings, static_gaussians=shadow_static, static_tracer=tracer)
+            with _shared_lock:
+                _shared[full_key] = ctx
+                while len(_shared) > SHARED_CONTEXTS:
+                    _shared.popitem(last=False)
+            return ctx
+        finally:
+            self.setup_seconds += time.perf_counter() - t0
+
+    def record(self, res: PBRResult) -> None:
+        self.frames += 1
+        self.samples += int(res.samples.sum())
+        self.shaded_pixels += int(res.counters.get("shaded_pixels", 0))
+
+    @property
+    def mean_samples(self) -> float | None:
+        """Mean samples per shaded pixel (None before any shaded pixel)."""
+        return self.samples / self.shaded_pixels if self.shaded_pixels else None
+
+
 class ClipRenderer:
     """Render frames of a scene along a camera path with reuse across frames.
 
@@ -454,7 +561,9 @@ class ClipRenderer:
         # static shadow casters: the static part plus the graph's shadow-only occluders
         shadow_static = (self.graph.shadow_static() if self.graph is not None else self.static) if self.static_reuse \
             else None
-        self.context = FrameContext(env, self.settings, static_gaussians=shadow_static)
+        self.hook = _clip_hook.get()
+        self.context = (self.hook.context(env, self.settings, shadow_static) if self.hook is not None
+                        else FrameContext(env, self.settings, static_gaussians=shadow_static))
         self.setup_seconds = time.perf_counter() - t0
 
     def render(self, camera, time_s: float = 0.0, frame_index: int = 0) -> PBRResult:
@@ -491,6 +600,8 @@ class ClipRenderer:
         res.timings["bvh"] = t_bvh
         res.timings["raster"] = t_raster
         res.timings["total"] = time.perf_counter() - t0
+        if self.hook is not None:
+            self.hook.record(res)
         return res
 
 

@@ -126,7 +126,19 @@ class Scenario:
     gamma: float = 2.2
     """LDR gamma."""
     rays_per_pixel: int = 64
-    """PBR rays per pixel."""
+    """PBR rays per pixel (with ``adaptive_rays``: the most a pixel takes)."""
+    adaptive_rays: bool = False
+    """Skip: rays per pixel set by the measured variance. Every pixel takes
+    ``PBRSettings.adaptive_min_batches`` batches, then stops once its LDR standard error is below
+    ``PBRSettings.adaptive_tol`` (:mod:`core.pbr.integrator`). Recorded in the metrics'
+    ``skips_fired`` with the mean rays spent. Off by default: ``benchmarks/bench_skips.py``
+    (``benchmarks/results/skips.json``) measured what it saves and costs."""
+    reuse_visibility_across_requests: bool = False
+    """Skip: reuse the reconstruction's cached visibility across relight requests of one scene.
+    The static shadow-ray BVH (and, under the same map, the visibility cache) of an earlier
+    request in this process is reused when the shadow casters are the same to the bit
+    (:class:`core.pbr.render.ClipHook`). Recorded in the metrics' ``skips_fired``. Default from
+    ``benchmarks/results/skips.json``."""
     shadows: bool = True
     """Ray-traced visibility (off: every light sample is visible)."""
     normal_offset_m: float = 0.1
@@ -174,6 +186,9 @@ class Scenario:
             raise ConfigError(f"normal_offset_m: must be in [0, 10] metres, got {self.normal_offset_m!r}")
         if not (isinstance(self.shadow_t_min_m, (int, float)) and 0 <= self.shadow_t_min_m <= 100):
             raise ConfigError(f"shadow_t_min_m: must be in [0, 100] metres, got {self.shadow_t_min_m!r}")
+        for name in ("adaptive_rays", "reuse_visibility_across_requests"):
+            if not isinstance(getattr(self, name), bool):
+                raise ConfigError(f"{name}: expected true or false, got {getattr(self, name)!r}")
         if not (isinstance(self.rays_per_pixel, int) and 1 <= self.rays_per_pixel <= 4096):
             raise ConfigError(f"rays_per_pixel: must be an int in [1, 4096], got {self.rays_per_pixel!r}")
         if not isinstance(self.auto_exposure, AutoExposure):
@@ -543,7 +558,7 @@ def render_scenario(graph, scenario: Scenario, out_dir: str | Path, *,
     """Apply the edits, place the lights, render the views with the PBR pass, denoise, write EXR /
     MP4 / PNG into ``out_dir`` (:func:`core.relight.render_clip`)."""
     from core.pbr.envmap import EnvironmentMap
-    from core.pbr.render import PBRSettings
+    from core.pbr.render import ClipHook, PBRSettings
     from core.pbr.visibility import TraceSettings
     from core.relight import apply_edits, render_clip
 
@@ -566,11 +581,24 @@ def render_scenario(graph, scenario: Scenario, out_dir: str | Path, *,
                            gamma=scenario.gamma,
                            shadows=scenario.shadows, normal_offset=scenario.normal_offset_m,
                            trace=TraceSettings(leaf_size=16, t_min=scenario.shadow_t_min_m),
-                           reuse_visibility=len(scenario.views) > 1)
-    res = render_clip(g, env, list(scenario.views), out_dir, settings=settings, lights=lights,
-                      outputs=list(scenario.outputs), denoiser=scenario.denoiser,
-                      denoiser_fallback=scenario.denoiser_fallback, fps=scenario.fps, on_frame=on_frame,
-                      auto_exposure=scenario.auto_exposure if scenario.exposure_ev is None else None)
+                           reuse_visibility=len(scenario.views) > 1, adaptive=scenario.adaptive_rays)
+    with ClipHook(reuse_across_clips=scenario.reuse_visibility_across_requests) as hook:
+        res = render_clip(g, env, list(scenario.views), out_dir, settings=settings, lights=lights,
+                          outputs=list(scenario.outputs), denoiser=scenario.denoiser,
+                          denoiser_fallback=scenario.denoiser_fallback, fps=scenario.fps, on_frame=on_frame,
+                          auto_exposure=scenario.auto_exposure if scenario.exposure_ev is None else None)
+    fired = []
+    mean_rays = hook.mean_samples
+    if scenario.adaptive_rays and mean_rays is not None and mean_rays < scenario.rays_per_pixel:
+        fired.append({"skip": "adaptive_rays", "why": f"pixels stopped once their LDR standard error fell below "
+                      f"{settings.adaptive_tol:g}: {mean_rays:.1f} of {scenario.rays_per_pixel} rays per shaded "
+                      f"pixel on average", "mean_rays_per_pixel": round(mean_rays, 2)})
+    if hook.reused is not None:
+        fired.append({"skip": "reuse_visibility_across_requests",
+                      "why": "an earlier request of this reconstruction in this process had built the static "
+                             + ("shadow-ray BVH and, under the same map, the visibility cache" if
+                                hook.reused == "bvh+visibility" else "shadow-ray BVH"),
+                      "reused": hook.reused})
     ev = math.log2(res.exposure / scenario.base_exposure) if res.exposure > 0 and scenario.base_exposure > 0 else None
     return ScenarioResult(res, len(scenario.views), len(lights),
                           {"frames": len(scenario.views), "seconds_per_frame": round(res.seconds_per_frame, 3),
@@ -579,7 +607,9 @@ def render_scenario(graph, scenario: Scenario, out_dir: str | Path, *,
                            "exposure": "auto" if scenario.exposure_ev is None else "fixed",
                            "exposure_ev": None if ev is None else round(ev, 3),
                            "exposure_limited_by": res.exposure_note,
-                           "street_lights": [[round(float(x), 3) for x in lt.position] for lt in scenario.street_lights]})
+                           "street_lights": [[round(float(x), 3) for x in lt.position] for lt in scenario.street_lights],
+                           "mean_rays_per_pixel": None if mean_rays is None else round(mean_rays, 2),
+                           "setup_seconds": round(hook.setup_seconds, 3), "skips_fired": fired})
 
 
 __all__ = ["LightSpec", "Scenario", "ScenarioResult", "views_from_frames", "views_from_path", "views_from_capture", "load_path_json",
