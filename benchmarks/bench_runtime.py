@@ -1,0 +1,196 @@
+"""Run time against error for the whole pipeline (``core.stages.chain``) on the bundled default
+scene, the development scene of the quick profile: each stage's error at its end against the
+cumulative wall time, and a front of whole-pipeline configurations (profile, iteration scale,
+Gaussian budget; rays per pixel of the render) with seconds against relight PSNR.
+
+    python benchmarks/bench_runtime.py --data /root/brdf_data/runtime
+    python benchmarks/bench_runtime.py --data D --configs tiny,quick_x0.5,quick   # a subset
+
+Per stage, the error is measured on a copy of the run cut after that stage (the later stages'
+directories left out), so "after volume" is exactly what the volume stage handed on. Errors:
+relight PSNR (held-back maps, through the relight path), albedo si-PSNR, normal MAE. Runs are kept
+under ``<data>/<config>`` and resumed; evaluations are cached next to them. Writes
+``benchmarks/results/runtime.json`` and ``runtime.png``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import shutil
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from core.stages.chain import RUN_FILE, STAGES, RunDir, run_pipeline  # noqa: E402
+
+SCENE = REPO / "data" / "scenes" / "default"
+#: name -> (profile, iterations scale, stage overrides). Scales multiply every stage's iterations
+#: (``run_pipeline(iterations_scale=)``), so a front point is a whole pipeline run on its own.
+CONFIGS = {
+    "tiny": ("tiny", 1.0, {}),
+    "quick_x0.25": ("quick", 0.25, {}),
+    "quick_x0.5": ("quick", 0.5, {}),
+    "quick": ("quick", 1.0, {}),
+    "quick_x1.5": ("quick", 1.5, {}),
+    "quick_40k": ("quick", 1.0, {"volume": {"density.max_gaussians": 40_000},
+                                 "volume2": {"density.max_gaussians": 40_000}}),
+}
+#: Rays per pixel of the evaluation render swept on the ``quick`` run (render cost, not training).
+RAYS = (16, 64, 256)
+#: Stages after which the error is measured (generative_refine changes priors only; pbr changes
+#: the map only, which relight under held-back maps does not use).
+CUT_AFTER = ("volume", "volume2", "joint")
+KEYS = ("relight_psnr", "relight_ssim", "albedo_si_psnr", "normal_mae_deg", "rerender_psnr", "nvs_psnr")
+
+
+def machine() -> dict:
+    cpu = next((ln.split(":", 1)[1].strip() for ln in Path("/proc/cpuinfo").read_text().splitlines()
+                if ln.startswith("model name")), "unknown")
+    return {"cpu": cpu, "cores": os.cpu_count(), "python": platform.python_version(), "platform": platform.platform()}
+
+
+def cut_copy(run_dir: Path, after: str, dst: Path) -> Path:
+    """A copy of ``run_dir`` with only the stages up to ``after`` (hard links: no extra space)."""
+    if (dst / RUN_FILE).is_file():
+        return dst
+    keep = STAGES[:STAGES.index(after) + 1]
+    dst.mkdir(parents=True, exist_ok=True)
+    for st in keep:
+        if (run_dir / st).is_dir():
+            shutil.copytree(run_dir / st, dst / st, copy_function=os.link, dirs_exist_ok=True)
+    shutil.copy2(run_dir / RUN_FILE, dst / RUN_FILE)
+    return dst
+
+
+def evaluate(run_dir: Path, rays: int, max_frames: int) -> dict:
+    """Cached :func:`core.evaluate.evaluate_run` summary (and its seconds)."""
+    from core.evaluate import EvalSettings, evaluate_run
+
+    f = run_dir / f"bench_eval_r{rays}_f{max_frames}.json"
+    if f.is_file():
+        return json.loads(f.read_text())
+    ev = evaluate_run(run_dir, settings=EvalSettings(rays_per_pixel=rays, max_frames=max_frames, flip=False),
+                      out=run_dir / f"eval_r{rays}")
+    row = {**{k: ev["summary"].get(k) for k in KEYS}, "evaluation_seconds": ev["seconds"]}
+    f.write_text(json.dumps(row, indent=1))
+    return row
+
+
+def pareto(points: list[tuple[float, float]]) -> list[int]:
+    """Indices of the points no other point beats in both seconds (lower) and PSNR (higher)."""
+    return [i for i, (s, p) in enumerate(points)
+            if not any((s2 <= s and p2 >= p) and (s2 < s or p2 > p) for s2, p2 in points)]
+
+
+def knee(points: list[tuple[float, float]], front: list[int]) -> int | None:
+    """The front point farthest above the chord from its cheapest to its best point, with seconds
+    on a log axis (Kneedle on the normalised front)."""
+    if len(front) < 3:
+        return None
+    f = sorted(front, key=lambda i: points[i][0])
+    x = np.log([points[i][0] for i in f])
+    y = np.array([points[i][1] for i in f])
+    xn = (x - x[0]) / max(x[-1] - x[0], 1e-9)
+    yn = (y - y[0]) / max(y[-1] - y[0], 1e-9)
+    return f[int(np.argmax(yn - xn))]
+
+
+def plot(result: dict, out: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(1, 3, figsize=(16, 4.6))
+    for name, c in result["configs"].items():
+        xs = [s["cumulative_seconds"] for s in c["after_stage"].values()]
+        for k, a in (("relight_psnr", ax[0]), ("albedo_si_psnr", ax[1]), ("normal_mae_deg", ax[2])):
+            a.plot(xs, [s[k] for s in c["after_stage"].values()], "o-", label=name)
+    for a, t in zip(ax, ("relight PSNR (dB)", "albedo si-PSNR (dB)", "normal MAE (deg)")):
+        a.set_xscale("log")
+        a.set_xlabel("cumulative pipeline seconds (points: after volume, volume2, joint)")
+        a.set_ylabel(t)
+        a.grid(alpha=0.3)
+    ax[0].legend(fontsize=7)
+    fr = result["front"]
+    pts = fr["points"]
+    ax[0].scatter([p["seconds"] for p in pts], [p["relight_psnr"] for p in pts], marker="x", c="k", zorder=5)
+    on = sorted((p for p in pts if p["on_front"]), key=lambda p: p["seconds"])
+    ax[0].plot([p["seconds"] for p in on], [p["relight_psnr"] for p in on], "k--", lw=1, label="front")
+    if fr.get("knee"):
+        k = next(p for p in pts if p["name"] == fr["knee"])
+        ax[0].annotate(f"knee: {k['name']}", (k["seconds"], k["relight_psnr"]), textcoords="offset points",
+                       xytext=(-40, 12), arrowprops={"arrowstyle": "->"})
+    ax[0].set_title("relight PSNR against pipeline seconds (x: front configurations)")
+    fig.suptitle(f"run time against error, default scene ({result['machine']['cores']} cores)")
+    fig.tight_layout()
+    fig.savefig(out, dpi=110)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", required=True, help="directory of the runs (kept and resumed)")
+    ap.add_argument("--configs", default=",".join(CONFIGS), help=f"comma-separated of {list(CONFIGS)}")
+    ap.add_argument("--max-frames", type=int, default=4, help="test frames evaluated per point (0 = all)")
+    ap.add_argument("--out", default=str(REPO / "benchmarks" / "results" / "runtime.json"))
+    a = ap.parse_args()
+    names = [n for n in a.configs.split(",") if n]
+    bad = [n for n in names if n not in CONFIGS]
+    if bad:
+        ap.error(f"--configs: unknown {bad} (configs: {list(CONFIGS)})")
+    data = Path(a.data)
+    out = Path(a.out)
+    result = json.loads(out.read_text()) if out.is_file() else {}
+    result.update({"machine": machine(), "scene": "data/scenes/default (development scene)",
+                   "threads": int(os.environ.get("OMP_NUM_THREADS", 0)) or None,
+                   "max_frames": a.max_frames, "note": __doc__.split("\n\n")[1].replace("\n", " ")})
+    configs = result.setdefault("configs", {})
+    for name in names:
+        prof, scale, ov = CONFIGS[name]
+        run_dir = data / name
+        print(f"{name}: {prof} x{scale} {ov or ''}", flush=True)
+        t0 = time.perf_counter()
+        run_pipeline(SCENE, run_dir, prof, overrides=ov, iterations_scale=scale,
+                     resume=(run_dir / RUN_FILE).is_file(), progress=False,
+                     on_stage=lambda n, w, s: print(f"    {n}: {w}", flush=True))
+        run = RunDir(run_dir)
+        secs = {st: float(run.summary(st)["seconds"]) for st in STAGES}
+        after, cum = {}, 0.0
+        for st in STAGES:
+            cum += secs[st]
+            if st in CUT_AFTER:
+                d = run_dir if st == STAGES[-1] else cut_copy(run_dir, st, data / "cuts" / f"{name}_{st}")
+                after[st] = {"cumulative_seconds": round(cum, 1), **evaluate(d, 64, a.max_frames)}
+                print(f"    after {st}: {after[st]}", flush=True)
+        configs[name] = {"profile": prof, "iterations_scale": scale, "overrides": ov, "stage_seconds": secs,
+                         "pipeline_seconds": round(cum, 1), "after_stage": after,
+                         "wall_seconds_this_call": round(time.perf_counter() - t0, 1)}
+        if name == "quick":
+            configs[name]["rays_per_pixel"] = {str(r): evaluate(run_dir, r, a.max_frames) for r in RAYS}
+        out.write_text(json.dumps(result, indent=1))
+    # the front: every configuration's whole pipeline (training seconds) against relight PSNR
+    pts = [{"name": n, "seconds": c["pipeline_seconds"], "relight_psnr": c["after_stage"]["joint"]["relight_psnr"]}
+           for n, c in configs.items() if c["after_stage"].get("joint", {}).get("relight_psnr") is not None]
+    xy = [(p["seconds"], p["relight_psnr"]) for p in pts]
+    fr = pareto(xy)
+    for i, p in enumerate(pts):
+        p["on_front"] = i in fr
+    k = knee(xy, fr)
+    result["front"] = {"points": pts, "knee": pts[k]["name"] if k is not None else None,
+                       "knee_rule": "Kneedle on the front, log seconds against relight PSNR, both normalised"}
+    out.write_text(json.dumps(result, indent=1))
+    plot(result, out.with_suffix(".png"))
+    print(json.dumps(result["front"], indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
