@@ -27,6 +27,7 @@ from fastapi.responses import JSONResponse
 
 import api_schemas as S
 from services.auth import Authenticator, create_key
+from services.db import get_database
 from services.metrics import MetricsMiddleware, Registry
 from services.routes import envmaps as envmap_routes
 from services.routes import jobs as job_routes
@@ -35,7 +36,6 @@ from services.routes import scenes as scene_routes
 from services.routes import system as system_routes
 from services.routes.common import (E, UPLOAD_PATHS, Ctx, _err, attempt_out, envmap_out, job_out,  # noqa: F401
                                     ok, ok_json, scene_out)
-from worker.db import get_database
 from worker.queue import expire_failed_artifacts, reconcile, redis_conn, sweep_work_dirs
 from worker.settings import Settings, get_settings
 from worker.storage import get_store

@@ -23,7 +23,8 @@ from datetime import timedelta
 from fastapi import HTTPException, Request
 from sqlalchemy import select
 
-from worker.db import ApiKey, DashboardSession, Database, utcnow
+from services.db import ApiKey, DashboardSession
+from worker.db import Database, utcnow
 
 SESSION_COOKIE = "brdf_session"
 SCOPES = ("operator", "client")

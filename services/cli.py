@@ -67,7 +67,7 @@ def worker(queues: str, burst: bool = False, fork: bool = True, name: str | None
 
 def keys_create(tenant: str, scope: str, name: str) -> int:
     from services.auth import create_key
-    from worker.db import get_database
+    from services.db import get_database
 
     s = _settings()
     try:
@@ -94,7 +94,7 @@ def up(host: str, port: int, workers: int) -> int:
     is restarted with backoff (:mod:`services.supervisor`). Ctrl-C stops everything it started."""
     from services.supervisor import WorkerSupervisor
     from services.auth import create_key
-    from worker.db import ApiKey, get_database
+    from services.db import ApiKey, get_database
 
     s = _settings()
     s.data_dir.mkdir(parents=True, exist_ok=True)

@@ -1,5 +1,6 @@
-"""The service's state in SQL (SQLAlchemy 2): API keys, dashboard sessions, scenes, environment
-maps, jobs, their stages and artifacts, idempotency keys.
+"""The service's state in SQL (SQLAlchemy 2) that the workers share with the gateway: scenes,
+environment maps, jobs, their stages, attempts and artifacts. The gateway's own tables (API keys,
+dashboard sessions, idempotency keys) are in :mod:`services.db`, on the same metadata.
 
 SQLite is the embedded default (one machine, no setup; WAL mode so a gateway and workers can
 share the file); PostgreSQL by URL for several machines. The database is the truth: Redis only
@@ -50,24 +51,6 @@ class UTCDateTime(TypeDecorator):
 
 class Base(DeclarativeBase):
     type_annotation_map = {datetime: UTCDateTime, dict[str, Any]: JSON, list[Any]: JSON}
-
-
-class ApiKey(Base):
-    __tablename__ = "api_keys"
-    id: Mapped[str] = mapped_column(String(32), primary_key=True, default=new_id)
-    tenant: Mapped[str] = mapped_column(String(64), index=True)
-    scope: Mapped[str] = mapped_column(String(16))
-    name: Mapped[str] = mapped_column(String(128), default="")
-    key_hash: Mapped[str] = mapped_column(String(64), unique=True)
-    created_at: Mapped[datetime] = mapped_column(default=utcnow)
-    revoked_at: Mapped[datetime | None] = mapped_column(default=None)
-
-
-class DashboardSession(Base):
-    __tablename__ = "dashboard_sessions"
-    token_hash: Mapped[str] = mapped_column(String(64), primary_key=True)
-    api_key_id: Mapped[str] = mapped_column(ForeignKey("api_keys.id", ondelete="CASCADE"))
-    expires_at: Mapped[datetime]
 
 
 class Scene(Base):
@@ -200,17 +183,6 @@ def attempt_ended(session: Session, job_id: str, attempt: int, outcome: str, rea
         session.add(JobAttempt(job_id=job_id, attempt=attempt + 1, queued_at=now))
 
 
-def queued_seconds(created_at: datetime, started_at: datetime | None, attempts: list) -> float | None:
-    """Time a job spent waiting for a worker: the sum of its attempts' waits (queued -> started);
-    without attempt rows (jobs older than the table), submission to the last start."""
-    if started_at is None:
-        return None
-    waits = [(a.started_at - a.queued_at).total_seconds() for a in attempts if a.started_at is not None]
-    if not waits:
-        return (started_at - created_at).total_seconds()
-    return max(sum(waits), 0.0)
-
-
 def pending_stage_names(session: Session, job_id: str) -> list[str]:
     """The stages of a job that are not done, in chain order (inside the caller's session, so a
     claim can read and update in one transaction)."""
@@ -228,21 +200,6 @@ class Artifact(Base):
     content_type: Mapped[str] = mapped_column(String(64))
     size_bytes: Mapped[int] = mapped_column(Integer)
     storage_key: Mapped[str] = mapped_column(String(1024))
-    created_at: Mapped[datetime] = mapped_column(default=utcnow)
-
-
-class IdempotencyKey(Base):
-    """A client's ``Idempotency-Key``: the first request with a key creates the resource; a repeat
-    with the same body returns it; a repeat with another body is refused."""
-
-    __tablename__ = "idempotency_keys"
-    __table_args__ = (UniqueConstraint("tenant", "key"),)
-    id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
-    tenant: Mapped[str] = mapped_column(String(64))
-    key: Mapped[str] = mapped_column(String(255))
-    request_hash: Mapped[str] = mapped_column(String(64))
-    resource: Mapped[str] = mapped_column(String(16))
-    resource_id: Mapped[str] = mapped_column(String(32))
     created_at: Mapped[datetime] = mapped_column(default=utcnow)
 
 

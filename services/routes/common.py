@@ -20,7 +20,8 @@ from sqlalchemy import func, select
 import api_schemas as S
 from services.auth import Authenticator, Principal
 from services.metrics import Registry
-from worker.db import Database, Envmap, IdempotencyKey, Job, JobAttempt, JobStage, Scene, queued_seconds, utcnow
+from services.db import IdempotencyKey, queued_seconds
+from worker.db import Database, Envmap, Job, JobAttempt, JobStage, Scene, utcnow
 from worker.settings import Settings
 from worker.storage import ArtifactStore
 

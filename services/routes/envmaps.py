@@ -19,7 +19,8 @@ from services.auth import Principal
 from services.routes.common import (
     E, ENVMAP_TYPES, Ctx, IdemKey, IdPath, P, _err, _fingerprint, envmap_out, stream_upload, visible,
 )
-from worker.db import Envmap, IdempotencyKey, new_id
+from services.db import IdempotencyKey
+from worker.db import Envmap, new_id
 
 log = logging.getLogger("brdf.gateway")
 

@@ -16,7 +16,8 @@ from services.auth import Principal
 from services.ranges import file_response
 from services.routes.common import E, Ctx, IdemKey, IdPath, P, _err, _fingerprint, ok, ok_json, page_total, visible
 from services.routes.objects import check_scene_request
-from worker.db import Artifact, Envmap, IdempotencyKey, Job, JobAttempt, JobStage, attempt_ended, new_id, utcnow
+from services.db import IdempotencyKey
+from worker.db import Artifact, Envmap, Job, JobAttempt, JobStage, attempt_ended, new_id, utcnow
 from worker.queue import request_cancel, try_enqueue
 from worker.registry import job_type
 from worker.storage import StorageError

@@ -20,7 +20,8 @@ from services.auth import Principal
 from services.routes.common import (
     E, SCENE_TYPES, Ctx, IdemKey, IdPath, P, _err, _fingerprint, ok, page_total, scene_out, stream_upload,
 )
-from worker.db import IdempotencyKey, Scene, new_id
+from services.db import IdempotencyKey
+from worker.db import Scene, new_id
 
 log = logging.getLogger("brdf.gateway")
 

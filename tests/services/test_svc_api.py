@@ -119,7 +119,7 @@ def test_operator_creates_keys_stored_hashed(client, app):
     assert r.status_code == 201
     key = r.json()["key"]
     assert client.get("/scenes", headers={"Authorization": f"Bearer {key}"}).status_code == 200
-    from worker.db import ApiKey
+    from services.db import ApiKey
 
     with app.state.db.session() as s:
         stored = [k.key_hash for k in s.scalars(select(ApiKey)).all()]

@@ -13,7 +13,8 @@ from sqlalchemy import select, update
 from sqlalchemy.exc import IntegrityError
 
 from svc_support import REPO, postgres_database
-from worker.db import ApiKey, Artifact, Database, IdempotencyKey, Job, JobStage, Scene, utcnow
+from services.db import ApiKey, IdempotencyKey
+from worker.db import Artifact, Database, Job, JobStage, Scene, utcnow
 
 
 def _scene(tenant="acme", **kw) -> Scene:
