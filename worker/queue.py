@@ -22,6 +22,7 @@ from sqlalchemy import select, update
 
 from worker.db import (Artifact, Database, Job, JobStage, attempt_ended, pending_stage_names, rq_job_id,
                        utcnow)
+from worker.registry import job_type
 from worker.settings import QUEUES, Settings
 
 log = logging.getLogger("brdf.queue")
@@ -50,8 +51,6 @@ def pending_stages(db: Database, job_id: str) -> list[str]:
 
 
 def is_chained(job: Job) -> bool:
-    from worker.registry import job_type
-
     jt = job_type(job.type)
     return jt is not None and jt.chained
 
@@ -296,7 +295,7 @@ DIED_MARKERS = ("AbandonedJobError", "Work-horse terminated", "work-horse termin
 
 def attempt_prefix(job_id: str, attempt: int, stage: str | None) -> str:
     """The store prefix of one attempt's outputs (of one stage, for a chain); mirrors
-    :attr:`worker.jobs.JobContext.key_prefix`."""
+    :attr:`worker.runtime.JobContext.key_prefix`."""
     return f"jobs/{job_id}/{stage}.a{attempt}" if stage else f"jobs/{job_id}/{attempt}"
 
 

@@ -19,9 +19,9 @@ from pathlib import Path
 from sqlalchemy import select
 
 from api_schemas import ReconstructRequest
+from core.stages.chain import STAGES
 from worker.db import Artifact, Job
-from worker.jobs import JobContext
-from worker.registry import JobType, register
+from worker.runtime import JobContext, JobType
 from worker.settings import QUEUE_TRAIN
 
 #: Artifact name of a stage's scene graph: ``<stage>/checkpoint/scene_graph.pt``.
@@ -86,7 +86,7 @@ def restore_run(ctx: JobContext, job_id: str, scene_dir: Path, profile: str, sta
 def _run_one(stage: str):
     def run(ctx: JobContext, p: ReconstructRequest) -> None:
         from core.bundle import open_bundle
-        from core.stages.chain import STAGES, profile_settings, run_stage, scale_iterations
+        from core.stages.chain import profile_settings, run_stage, scale_iterations
 
         scene = ctx.scene_dir()
         earlier = STAGES[:STAGES.index(stage)]
@@ -141,12 +141,6 @@ def needs_reconstruction(session, scene_id: str, tenant: str) -> str | None:
     return None
 
 
-def _register() -> None:
-    from core.stages.chain import STAGES
-
-    register(JobType("reconstruct", QUEUE_TRAIN, ReconstructRequest, _run_one(STAGES[0]), stages=STAGES,
-                     unavailable=reconstruct_unavailable, stages_for=reconstruct_stages,
-                     stage_fns={s: _run_one(s) for s in STAGES}))
-
-
-_register()
+JOB_TYPE = JobType("reconstruct", QUEUE_TRAIN, ReconstructRequest, _run_one(STAGES[0]), stages=STAGES,
+                   unavailable=reconstruct_unavailable, stages_for=reconstruct_stages,
+                   stage_fns={s: _run_one(s) for s in STAGES})

@@ -1,71 +1,24 @@
-"""The job-type registry: one entry per job type that does real work.
+"""The job-type registry: every job type that does real work, imported explicitly from its module
+(one module per type: schema -> core call -> artifacts). The job modules register nothing
+themselves; each defines a ``JOB_TYPE`` (:class:`worker.runtime.JobType`) and this list names them.
 
-A job type is a name, the queue it runs on, the pydantic model of its parameters, its stages and
-one function ``run(ctx, params)``. The gateway accepts a submission only for a registered type,
-so an endpoint whose pipeline has not landed answers 409 "not available in this build"
-instead of queueing a fake job. Adding
-the relight job when the PBR pass lands is one function and one line::
-
-    def run_relight(ctx: JobContext, p: RelightRequest) -> None: ...
-    register(JobType("relight", QUEUE_RENDER, RelightRequest, run_relight, stages=("relight",)))
+The gateway accepts a submission only for a registered type, so an endpoint whose pipeline has not
+landed answers 409 "not available in this build" instead of queueing a fake job. Adding a job type
+is one module ``worker/<type>.py`` with ``run(ctx, params)`` and ``JOB_TYPE = JobType(...)``, and
+one entry in :data:`JOB_MODULES`.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import TYPE_CHECKING, Callable, Mapping
+from worker import night, reconstruct, relight, render
+from worker.runtime import JobType
 
-from pydantic import BaseModel
+#: The job modules, each with its ``JOB_TYPE``.
+JOB_MODULES = (render, reconstruct, relight, night)
 
-if TYPE_CHECKING:
-    from worker.jobs import JobContext
-
-
-@dataclass(frozen=True)
-class JobType:
-    name: str
-    queue: str
-    params: type[BaseModel]
-    run: Callable[["JobContext", BaseModel], None]
-    stages: tuple[str, ...]
-    needs_scene: bool = True
-    #: Returns why this build cannot serve a valid request (e.g. it asks for a stage that has not
-    #: landed), or None; the gateway then answers 409 and queues nothing.
-    unavailable: Callable[[BaseModel], str | None] | None = None
-    #: ``(session, scene_id, tenant) -> reason or None``: what the scene must have before this job
-    #: can run (e.g. a finished reconstruction); the gateway answers 409 with the reason.
-    precondition: Callable[[object, str, str], str | None] | None = None
-    #: A chained job type (the training stages): ``{stage name: run(ctx, params)}``. Each stage
-    #: of a job is then its own RQ job, enqueued behind the previous one with ``depends_on``; the
-    #: job's row in the database tracks the chain, and a retry resumes at the first stage that is
-    #: not done. ``run`` is unused for such a type.
-    stage_fns: Mapping[str, Callable[["JobContext", BaseModel], None]] | None = None
-    #: The stages a request asks for (chained types: e.g. the requested subset of the chain, in
-    #: chain order); default: all of :attr:`stages`.
-    stages_for: Callable[[BaseModel], tuple[str, ...]] | None = None
-
-    @property
-    def chained(self) -> bool:
-        return self.stage_fns is not None
-
-    def stages_of(self, params: BaseModel) -> tuple[str, ...]:
-        return tuple(self.stages_for(params)) if self.stages_for is not None else self.stages
-
-
-REGISTRY: dict[str, JobType] = {}
-
-
-def register(jt: JobType) -> JobType:
-    if jt.name in REGISTRY and REGISTRY[jt.name] is not jt:
-        raise ValueError(f"job type {jt.name!r} is already registered")
-    REGISTRY[jt.name] = jt
-    return jt
+REGISTRY: dict[str, JobType] = {m.JOB_TYPE.name: m.JOB_TYPE for m in JOB_MODULES}
 
 
 def job_type(name: str) -> JobType | None:
-    """The registered job type ``name`` (importing the built-in job types first), or None."""
-    import worker.jobs  # noqa: F401  (registers the render type)
-    import worker.reconstruct  # noqa: F401  (the chain of stages)
-    import worker.relight  # noqa: F401  (relight and night)
-
+    """The registered job type ``name``, or None."""
     return REGISTRY.get(name)

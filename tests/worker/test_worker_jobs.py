@@ -380,7 +380,7 @@ def test_stage_metrics_never_hold_nan(caplog):
     import json
     import logging
 
-    from worker.jobs import finite_metrics
+    from worker.runtime import finite_metrics
 
     with caplog.at_level(logging.WARNING, logger="brdf.jobs"):
         m = finite_metrics({"test_psnr": float("nan"), "train_psnr": 21.5, "gaussians": 10, "prior_source": "onnx",
