@@ -30,6 +30,7 @@ import numpy as np
 import torch
 
 from core.errors import ConfigError, FormatError, NumericalError
+from core.stages.early_stop import stalled
 
 
 @dataclass(frozen=True)
@@ -77,9 +78,22 @@ class JointSettings:
     """Intra-op torch threads (see :class:`core.stages.volume.VolumeSettings`)."""
     seed: int = 0
     """Seed of the frame order, the pixel subsets and the ray samples."""
+    early_stop_every: int = 0
+    """Skip: stop once the loss stops improving: every this many steps the mean loss of those
+    steps (fresh frames and pixels every step) is compared with the best window so far; after
+    ``early_stop_patience`` windows without a relative gain of ``early_stop_min_delta`` the stage
+    stops and its summary's ``skips_fired`` says so (:func:`core.stages.early_stop.stalled`).
+    0 = off; default from ``benchmarks/results/skips.json``."""
+    early_stop_patience: int = 2
+    """Windows without improvement before the stage stops."""
+    early_stop_min_delta: float = 0.01
+    """Relative gain of the window's mean loss that counts (0.01 = 1%)."""
 
     def __post_init__(self) -> None:
         bad = [n for n, ok in (("iterations", self.iterations >= 0), ("pixels", self.pixels >= 1),
+                               ("early_stop_every", self.early_stop_every >= 0),
+                               ("early_stop_patience", self.early_stop_patience >= 1),
+                               ("early_stop_min_delta", 0 <= self.early_stop_min_delta < 1),
                                ("rays_per_pixel", self.rays_per_pixel >= 1), ("lambda_pbr", self.lambda_pbr >= 0),
                                ("lr_scale", self.lr_scale > 0), ("env_lr", self.env_lr > 0),
                                ("max_frames", self.max_frames >= 1), ("threads", self.threads >= 1)) if not ok]
@@ -182,6 +196,7 @@ def run_stage(ctx) -> dict:
         env_opt = torch.optim.Adam([env.param], lr=cfg.env_lr)
         history: list[dict] = []
         start = 1
+        stopped_at, fired = None, []
         if state is not None:
             for o, st in zip(opts, state["opt"]):
                 o.m, o.v, o.step_count = st["m"], st["v"], st["step"]
@@ -253,6 +268,17 @@ def run_stage(ctx) -> dict:
                 ctx.on_progress(it, cfg.iterations, rec)
             if it % every == 0 and it < cfg.iterations:
                 _save_state(ck, it, model, opts, sky_opt, env, env_opt, rng, gen, history)
+            k = cfg.early_stop_every
+            if k and it % k == 0 and it < cfg.iterations:
+                wins = [float(np.mean([h["loss"] for h in history[j:j + k]])) for j in range(0, len(history) - k + 1, k)]
+                if stalled(wins, cfg.early_stop_patience, cfg.early_stop_min_delta, higher_is_better=False, relative=True):
+                    stopped_at = it
+                    fired.append({"skip": "early_stop", "stopped_at": it, "why": f"the mean loss of the last "
+                                  f"{cfg.early_stop_patience} windows of {k} steps did not improve by "
+                                  f"{cfg.early_stop_min_delta:.0%} on the best before them: stopped after {it} of "
+                                  f"{cfg.iterations} steps"})
+                    break
+        bar.close()
         env.rebuild_sampler()
         with torch.no_grad():
             fitted = resample(env.radiance_map().detach().double(), 512, 1024).numpy().astype(np.float32)
@@ -265,7 +291,8 @@ def run_stage(ctx) -> dict:
         n = sum(g.num for g in model.containers())
         return {"graph_stage": graph_stage, "envmap_stage": env_stage, "prior_source": prior_source,
                 "iterations": cfg.iterations, "frames": len(train), "gaussians": n, "history": history,
-                "resumed_from_iteration": start - 1, "seconds": round(time.perf_counter() - t0, 2)}
+                "resumed_from_iteration": start - 1, "seconds": round(time.perf_counter() - t0, 2),
+                "iterations_run": stopped_at or cfg.iterations, "early_stopped_at": stopped_at, "skips_fired": fired}
     finally:
         torch.set_num_threads(old_threads)
 

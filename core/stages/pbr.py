@@ -35,6 +35,7 @@ import numpy as np
 import torch
 
 from core.errors import ConfigError, FormatError, NumericalError
+from core.stages.early_stop import stalled
 
 
 @dataclass(frozen=True)
@@ -75,9 +76,37 @@ class PBRStageConfig:
     """Seed of the pixel subsets and the ray samples."""
     threads: int = 2
     """CPU threads of the rasterizer and the shadow-ray kernels."""
+    skip_sun_search: bool = False
+    """Skip: no sun search for an overcast or night capture. When the training frames show no
+    sun (at most ``overcast_max_clipped_sky`` of their sky pixels clipped: no sun disc and no
+    glare) or are dark (median LDR value at most ``night_max_median_ldr``), the lighting prior
+    is the sky fit alone (no surface samples reach :func:`core.gen.lighting.estimate_lighting`,
+    so its sun search does not run) and the summary's ``skips_fired`` says why. Default from
+    ``benchmarks/results/skips.json``."""
+    overcast_max_clipped_sky: float = 0.01
+    """Largest fraction of clipped sky pixels (any channel at the LDR clip) of an overcast capture."""
+    night_max_median_ldr: float = 0.05
+    """Largest median LDR value (all pixels, all channels) of a night capture."""
+    early_stop_every: int = 0
+    """Skip: stop once the fit stops improving. Every this many steps the mean photometric L1 of
+    those steps (the stage's validation error: fresh random pixels every step) is compared with
+    the best window so far; after ``early_stop_patience`` windows without an improvement of
+    ``early_stop_min_delta`` (relative) the stage stops and says so in ``skips_fired``. 0 = off;
+    default from ``benchmarks/results/skips.json``."""
+    early_stop_patience: int = 2
+    """Windows without improvement before the stage stops."""
+    early_stop_min_delta: float = 0.01
+    """Relative improvement of the window's mean L1 that counts (0.01 = 1%)."""
 
     def __post_init__(self) -> None:
+        if not isinstance(self.skip_sun_search, bool):
+            raise ConfigError(f"skip_sun_search: expected true or false, got {self.skip_sun_search!r}")
         bad = [n for n, ok in (("iterations", self.iterations >= 0), ("pixels", self.pixels >= 1),
+                               ("overcast_max_clipped_sky", 0 <= self.overcast_max_clipped_sky <= 1),
+                               ("night_max_median_ldr", 0 <= self.night_max_median_ldr <= 1),
+                               ("early_stop_every", self.early_stop_every >= 0),
+                               ("early_stop_patience", self.early_stop_patience >= 1),
+                               ("early_stop_min_delta", 0 <= self.early_stop_min_delta < 1),
                                ("rays_per_pixel", self.rays_per_pixel >= 1), ("lr", self.lr > 0),
                                ("lambda_e_start", self.lambda_e_start >= 0), ("lambda_e_end", self.lambda_e_end >= 0),
                                ("env_height", self.env_height >= 8), ("max_frames", self.max_frames >= 1),
@@ -95,6 +124,7 @@ class _FrameData:
     target: torch.Tensor      # [H*W, 3] LDR in [0, 1]
     nonsky: torch.Tensor      # flat indices of non-sky pixels
     tracers: list
+    sky: torch.Tensor | None = None  # [H*W] bool, the bundle's sky mask (None: the bundle has none)
 
 
 def _frames(graph, bundle, cfg: PBRStageConfig) -> list[_FrameData]:
@@ -130,15 +160,41 @@ def _frames(graph, bundle, cfg: PBRStageConfig) -> list[_FrameData]:
             sky = bundle.load_sky_mask(fr)
             o = gb["opacity"].reshape(-1)
             ok = o >= 0.5
-            if sky is not None:
-                ok &= ~torch.from_numpy(np.asarray(sky, bool).reshape(-1))
-            out.append(_FrameData(cam, gb, target, torch.nonzero(ok).reshape(-1), tracers))
+            sky_t = torch.from_numpy(np.asarray(sky, bool).reshape(-1)) if sky is not None else None
+            if sky_t is not None:
+                ok &= ~sky_t
+            out.append(_FrameData(cam, gb, target, torch.nonzero(ok).reshape(-1), tracers, sky_t))
     return out, static_tracer
 
 
-def _prior(frames: list[_FrameData], bundle, height: int, tracer=None):
+def sunless_capture(frames: list[_FrameData], bundle, cfg: PBRStageConfig) -> tuple[str | None, dict]:
+    """Whether the training frames show an overcast or night sky (``("overcast" | "night" |
+    None, statistics)``): overcast when at most ``cfg.overcast_max_clipped_sky`` of the sky
+    pixels (the bundle's sky masks, else the render's uncovered pixels) are clipped, night when
+    the median LDR value is at most ``cfg.night_max_median_ldr``."""
+    clipped, sky_px, values = 0, 0, []
+    for f in frames:
+        h, w = f.camera.height, f.camera.width
+        t = f.target.reshape(h * w, 3)
+        values.append(t.reshape(-1))
+        sky = f.sky if f.sky is not None else f.gbuf["opacity"].reshape(-1) < 0.5
+        sky_px += int(sky.sum())
+        clipped += int((t[sky] >= 0.98).any(-1).sum())
+    frac = clipped / sky_px if sky_px else 0.0
+    med = float(torch.cat(values).median()) if values else 0.0
+    stats = {"clipped_sky_fraction": round(frac, 4), "sky_pixels": sky_px, "median_ldr": round(med, 4)}
+    if med <= cfg.night_max_median_ldr:
+        return "night", stats
+    if sky_px and frac <= cfg.overcast_max_clipped_sky:
+        return "overcast", stats
+    return None, stats
+
+
+def _prior(frames: list[_FrameData], bundle, height: int, tracer=None, search_sun: bool = True):
     """``E_g`` from the reconstruction's G-buffers (:func:`core.gen.lighting.estimate_lighting`),
-    with cast shadows traced through the reconstruction's static Gaussians (``tracer``)."""
+    with cast shadows traced through the reconstruction's static Gaussians (``tracer``).
+    ``search_sun`` False: no surface sample is given (depth 0 everywhere), so the estimate runs
+    no sun search and is the sky fit alone."""
     from core.gen.lighting import LightingSettings, estimate_lighting, numpy_visibility
 
     imgs, poses, skies, deps, nrms, albs = [], [], [], [], [], []
@@ -150,7 +206,7 @@ def _prior(frames: list[_FrameData], bundle, height: int, tracer=None):
         poses.append(f.camera.cam_to_world)
         sky = (o[..., 0] < 0.5).numpy()
         skies.append(sky)
-        deps.append(np.where(sky, 0.0, (f.gbuf["depth"].double() * inv)[..., 0].numpy()))
+        deps.append(np.where(sky | (not search_sun), 0.0, (f.gbuf["depth"].double() * inv)[..., 0].numpy()))
         n = f.gbuf["normal"].double()
         n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-9)
         nrms.append(n.numpy().astype(np.float32))
@@ -212,7 +268,18 @@ def fit_lighting(graph, bundle, out_dir: str | Path, cfg: PBRStageConfig | None 
     t0 = time.perf_counter()
     frames, static_tracer = _frames(graph, bundle, cfg)
     t_frames = time.perf_counter() - t0
-    est = _prior(frames, bundle, 512, static_tracer if cfg.prior_shadows else None)
+    fired: list[dict] = []
+    sunless, sky_stats = sunless_capture(frames, bundle, cfg)
+    search_sun = not (cfg.skip_sun_search and sunless)
+    if not search_sun:
+        fired.append({"skip": "skip_sun_search", "why": f"{sunless} capture: "
+                      + (f"median LDR {sky_stats['median_ldr']:g} <= {cfg.night_max_median_ldr:g}" if sunless == "night"
+                         else f"{sky_stats['clipped_sky_fraction']:.2%} of {sky_stats['sky_pixels']} sky pixels clipped "
+                              f"(<= {cfg.overcast_max_clipped_sky:.2%}): no sun in view")
+                      + "; the lighting prior is the sky fit alone"})
+    t_prior = time.perf_counter()
+    est = _prior(frames, bundle, 512, static_tracer if cfg.prior_shadows else None, search_sun=search_sun)
+    t_prior = time.perf_counter() - t_prior
     prior_full = np.asarray(est.envmap, np.float32)
     h = cfg.env_height
     prior_t = resample(torch.from_numpy(prior_full).double(), h, 2 * h)
@@ -254,6 +321,7 @@ def fit_lighting(graph, bundle, out_dir: str | Path, cfg: PBRStageConfig | None 
     groups = [{"params": [fine], "lr": cfg.lr}] + ([{"params": [coarse], "lr": cfg.coarse_lr}] if hc else [])
     opt = torch.optim.Adam(groups)
     history = []
+    stopped_at = None
     usable = [i for i, f in enumerate(frames) if f.nonsky.numel()]
     start = 0
     state_file = Path(resume_dir) / "state.pt" if resume_dir is not None else None
@@ -300,6 +368,19 @@ def fit_lighting(graph, bundle, out_dir: str | Path, cfg: PBRStageConfig | None 
                             "opt": opt.state_dict(), "gen": gen.get_state(), "history": history}, tmp)
         if on_progress is not None:
             on_progress(it + 1, cfg.iterations, rec)
+        k = cfg.early_stop_every
+        if k and (it + 1) % k == 0 and it + 1 < cfg.iterations:
+            windows = [float(np.mean([h["photo"] for h in history[j:j + k]])) for j in range(0, it + 1 - k + 1, k)]
+            if stalled(windows, cfg.early_stop_patience, cfg.early_stop_min_delta, higher_is_better=False,
+                       relative=True):
+                stopped_at = it + 1
+                fired.append({"skip": "early_stop", "why": f"the photometric L1 of the last "
+                              f"{cfg.early_stop_patience} windows of {k} steps did not improve by "
+                              f"{cfg.early_stop_min_delta:.0%} on the best before them "
+                              f"({', '.join(f'{w:.4f}' for w in windows[-cfg.early_stop_patience - 1:])}): "
+                              f"stopped after {stopped_at} of {cfg.iterations} steps",
+                              "stopped_at": stopped_at})
+                break
     with torch.no_grad():
         compose()
         env.param = env.param.detach()
@@ -314,10 +395,12 @@ def fit_lighting(graph, bundle, out_dir: str | Path, cfg: PBRStageConfig | None 
     write_envmap(out / "envmap_prior.exr", prior_full)
     rows = [_ldr_map(prior_full), _ldr_map(fitted_full)]
     summary = {"config": asdict(cfg), "frames": len(frames), "iterations": cfg.iterations,
+               "iterations_run": len(history), "early_stopped_at": stopped_at, "sun_search": search_sun,
+               "capture_sky": {"sunless": sunless, **sky_stats}, "skips_fired": fired,
                "photometric_psnr_prior": psnr_before, "photometric_psnr_fitted": psnr_after,
                "sun_source": est.sun_source, "sun_dir_prior": [float(x) for x in est.sun_dir],
                "history": history, "resumed_from_iteration": start,
-               "seconds": {"gbuffers": t_frames, "total": time.perf_counter() - t0}}
+               "seconds": {"gbuffers": t_frames, "prior": t_prior, "total": time.perf_counter() - t0}}
     sep = np.full((4, 1024, 3), 255, np.uint8)
     strip = np.concatenate([x for r in rows for x in (r, sep)][:-1])
     write_png(out / "preview.png", strip[::2, ::2])

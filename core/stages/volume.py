@@ -42,6 +42,7 @@ from core.numerics import require_finite, safe_normalize
 from core.gaussians import Gaussians
 from core.raster import RasterSettings, rasterize_gaussians
 from core.scene_graph import SceneGraph, transform_gaussians
+from core.stages.early_stop import stalled
 from core.stages.occluders import OccluderSettings, capture_views, complete_occluders
 from core.train.density import DensityConfig, DensityController, scene_extent
 from core.train.init_lidar import LidarInitConfig, gaussians_from_lidar
@@ -118,6 +119,27 @@ class VolumeSettings:
     the stage (:mod:`core.stages.occluders`); the count is in the summary."""
     lr: GaussianLR = field(default_factory=GaussianLR)
     """Learning rates."""
+    early_stop_every: int = 0
+    """Skip: stop once the held-out error stops improving. Every this many steps after the
+    density control window (``densify_until``), the PSNR of the held-out (test) frames is
+    measured; after ``early_stop_patience`` measurements in a row without a gain of
+    ``early_stop_min_delta_db`` over the best before them the stage stops, and its summary's
+    ``skips_fired`` says when and why (:func:`core.stages.early_stop.stalled`). Without test
+    frames it never fires. The summary's ``test_psnr`` is then measured on the frames that chose
+    the stop. 0 = off; default from ``benchmarks/results/skips.json``."""
+    early_stop_patience: int = 2
+    """Held-out measurements without improvement before the stage stops."""
+    early_stop_min_delta_db: float = 0.05
+    """Gain of held-out PSNR (dB) that counts as an improvement."""
+
+    def __post_init__(self) -> None:
+        for name, ok in (("early_stop_every", isinstance(self.early_stop_every, int) and self.early_stop_every >= 0),
+                         ("early_stop_patience", isinstance(self.early_stop_patience, int)
+                          and self.early_stop_patience >= 1),
+                         ("early_stop_min_delta_db", isinstance(self.early_stop_min_delta_db, (int, float))
+                          and 0 <= self.early_stop_min_delta_db < 100)):
+            if not ok:
+                raise ConfigError(f"{name}: out of range, got {getattr(self, name)!r}")
 
 
 @dataclass
@@ -415,10 +437,14 @@ def run_volume(bundle: SceneBundle, cfg: VolumeSettings, out_dir: str | Path | N
         dens = [DensityController(cfg.density, extent, g.num) for g in model.containers()]
         sky_opt = torch.optim.Adam(model.sky.parameters(), lr=cfg.sky_lr)
         history = []
+        validation: list[dict] = []  # held-out PSNR of the early stop
+        fired: list[dict] = []
+        stopped_at = None
         start_it = 1
         if state is not None:
             start_it = _restore(state, model, opts, dens, sky_opt, rng) + 1
             history = state["history"]
+            validation = list(state.get("validation", []))
         bar = tqdm(range(start_it, cfg.iterations + 1), desc="volume", unit="it", disable=not progress,
                    initial=start_it - 1, total=cfg.iterations)
         for it in bar:
@@ -477,8 +503,21 @@ def run_volume(bundle: SceneBundle, cfg: VolumeSettings, out_dir: str | Path | N
                 bar.set_postfix(loss=f"{float(loss.detach()):.4f}", n=n)
                 if on_progress is not None:
                     on_progress(it, cfg.iterations, history[-1])
+            k = cfg.early_stop_every
+            if k and test and it % k == 0 and it >= cfg.densify_until and it < cfg.iterations:
+                validation.append({"it": it, "psnr": round(evaluate(model, test, settings)["psnr"], 4)})
+                vals = [x["psnr"] for x in validation]
+                if stalled(vals, cfg.early_stop_patience, cfg.early_stop_min_delta_db, higher_is_better=True):
+                    stopped_at = it
+                    fired.append({"skip": "early_stop", "stopped_at": it,
+                                  "why": f"held-out PSNR did not gain {cfg.early_stop_min_delta_db:g} dB on the best "
+                                         f"before it in {cfg.early_stop_patience} measurements every {k} steps "
+                                         f"({', '.join(f'{v:.2f}' for v in vals[-cfg.early_stop_patience - 1:])}): "
+                                         f"stopped after {it} of {cfg.iterations} steps"})
+                    break
             if ckpt is not None and (it % checkpoint_every == 0 or it == cfg.iterations):
-                _save_state(ckpt, it, model, opts, dens, sky_opt, rng, history)
+                _save_state(ckpt, it, model, opts, dens, sky_opt, rng, history, validation)
+        bar.close()
         train_s = time.time() - t0
         pruned = 0
         if cfg.prune_sky_floaters:
@@ -502,6 +541,8 @@ def run_volume(bundle: SceneBundle, cfg: VolumeSettings, out_dir: str | Path | N
             "threads": cfg.threads, "resumed_from_iteration": start_it - 1, "history": history,
             "priors": (priors.source if use_priors else None), "sky_floaters_pruned": pruned,
             "occluders": model.graph.occluders.num, "occluders_seconds": round(occ_s, 2),
+            "iterations_run": stopped_at or cfg.iterations, "early_stopped_at": stopped_at,
+            "validation": validation, "skips_fired": fired,
         }
         if out_dir is not None:
             from core.io.images import write_png
@@ -530,7 +571,8 @@ def run_volume(bundle: SceneBundle, cfg: VolumeSettings, out_dir: str | Path | N
 STATE_FILE = "train_state.pt"
 
 
-def _save_state(ckpt: Path, it: int, model: VolumeModel, opts, dens, sky_opt, rng, history) -> None:
+def _save_state(ckpt: Path, it: int, model: VolumeModel, opts, dens, sky_opt, rng, history,
+                validation=()) -> None:
     """Write the training state: the scene graph of this iteration first, then the state file
     (atomically, last) naming that graph; older graphs are removed afterwards. A crash at any
     point leaves a state file that names a complete graph."""
@@ -546,6 +588,7 @@ def _save_state(ckpt: Path, it: int, model: VolumeModel, opts, dens, sky_opt, rn
         "rng": rng.bit_generator.state,
         "torch_rng": torch.get_rng_state(),
         "history": history,
+        "validation": list(validation),
     }
     from core.io.atomic import atomic_output
 
