@@ -5,13 +5,15 @@ Build
     ``g++ <flags> -o <so> <source>`` with the default flags
     ``-O3 -march=native -std=gnu++17 -shared -fPIC -pthread -Wno-psabi``. The shared object is
     cached under ``$BRDFUSION_CACHE_DIR/<subdir>`` (default ``~/.cache/brdfusion/<subdir>``; if
-    that is not writable, the temporary directory) and keyed by a hash of the source (plus any
-    files it ``#include``s, listed in ``depends``), the flags, the compiler version and the CPU
-    model and feature flags, so a source edit or a different machine rebuilds (``-march=native``
-    code is only valid on the same kind of CPU). The build writes to a temporary file in the
-    cache directory and renames it into place, so concurrent first uses (pytest-xdist, several
-    workers) are safe. ``BRDFUSION_CXX`` overrides the compiler. Builds of older sources that
-    have not been touched for a week are deleted.
+    that is not writable, the temporary directory) and keyed by a hash of the source, every file
+    it includes with ``#include "..."`` (found by :func:`local_includes`, recursively, relative
+    to the including file), any extra files listed in ``depends``, the flags, the compiler
+    version and the CPU model and feature flags, so an edit of the source or of one of its
+    headers, or a different machine, rebuilds (``-march=native`` code is only valid on the same
+    kind of CPU). The build writes to a temporary file in the cache directory and renames it into
+    place, so concurrent first uses (pytest-xdist, several workers) are safe. ``BRDFUSION_CXX``
+    overrides the compiler. Builds of older sources that have not been touched for a week are
+    deleted.
 
 Errors
     A missing compiler or a failed compilation raises :class:`core.errors.DependencyError` with
@@ -26,6 +28,7 @@ from __future__ import annotations
 import ctypes
 import hashlib
 import os
+import re
 import subprocess
 import tempfile
 import threading
@@ -65,6 +68,42 @@ def cpu_signature() -> str:
     return " | ".join(found.values()) or "unknown"
 
 
+_LOCAL_INCLUDE = re.compile(r'^\s*#\s*include\s*"([^"]+)"', re.MULTILINE)
+
+
+def local_includes(sources: Sequence[str | os.PathLike]) -> list[Path]:
+    """The files the sources include with ``#include "..."``, recursively: each name resolved
+    relative to the directory of the file that includes it (as the compiler does without ``-I``),
+    in first-seen order, without the sources themselves. Names that do not resolve to a file
+    (system headers written with quotes, conditional includes of absent files) are skipped: the
+    compiler reports them if they matter. ``<...>`` includes are not followed."""
+    seen = {Path(s).resolve() for s in sources}
+    out: list[Path] = []
+    todo = [Path(s).resolve() for s in sources]
+    while todo:
+        f = todo.pop(0)
+        for name in _LOCAL_INCLUDE.findall(f.read_text(encoding="utf-8", errors="replace")):
+            h = (f.parent / name).resolve()
+            if h in seen or not h.is_file():
+                continue
+            seen.add(h)
+            out.append(h)
+            todo.append(h)
+    return out
+
+
+def build_key(source: str | os.PathLike, *, depends: Sequence[str | os.PathLike] = (),
+              flags: Sequence[str] = DEFAULT_FLAGS, compiler_version: str = "") -> str:
+    """The cache key of a build: a hash of the source, the files it includes
+    (:func:`local_includes`), ``depends``, the flags, the compiler version and the CPU."""
+    src = Path(source)
+    h = hashlib.sha256()
+    for f in [src, *local_includes([src]), *(Path(d) for d in depends)]:
+        h.update(f.read_bytes())  # (a source without local includes keeps its key of before)
+    h.update(repr((list(flags), compiler_version, cpu_signature())).encode())
+    return h.hexdigest()[:16]
+
+
 def _writable_dir(subdir: str) -> Path:
     out_dir = cache_dir(subdir)
     try:
@@ -87,7 +126,8 @@ def build_shared_library(source: str | os.PathLike, *, name: str, subdir: str, w
         name: file name stem of the cached library (``<name>_<hash>.so``).
         subdir: cache sub-directory.
         what: what the kernels are, for error messages ("the rasterizer kernels").
-        depends: files included by ``source`` (hashed into the key, not compiled).
+        depends: further files the build depends on (hashed into the key, not compiled); the
+            files ``source`` includes with ``#include "..."`` are found and hashed unlisted.
         flags: compiler flags.
 
     Raises:
@@ -99,11 +139,7 @@ def build_shared_library(source: str | os.PathLike, *, name: str, subdir: str, w
     except (OSError, subprocess.CalledProcessError) as exc:
         raise DependencyError(f"a C++ compiler ({cxx}) is needed to build {what}: {exc}") from exc
     src = Path(source)
-    h = hashlib.sha256(src.read_bytes())
-    for dep in depends:
-        h.update(Path(dep).read_bytes())
-    h.update(repr((list(flags), version, cpu_signature())).encode())
-    key = h.hexdigest()[:16]
+    key = build_key(src, depends=depends, flags=flags, compiler_version=version)
     out_dir = _writable_dir(subdir)
     target = out_dir / f"{name}_{key}.so"
     if target.exists():

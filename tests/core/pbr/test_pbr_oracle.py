@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from core.conventions import look_at, project_points
-from core.errors import ConfigError, DependencyError
+from core.errors import ConfigError
 from core.pbr.oracle import OracleSettings, budget_scale, oracle_gaussians, predicted_count
 from core.raster import rasterize_gaussians
 from core.synth import geometry as geo
@@ -128,31 +128,3 @@ def test_lambert_materials_and_validation():
             OracleSettings(**kw)
     with pytest.raises(ConfigError, match="camera_positions"):
         oracle_gaussians([lam], np.zeros((0, 3)), 100.0)
-
-
-def test_native_build_caches_by_source_and_reports_compiler_errors(tmp_path, monkeypatch):
-    from core import native_build
-
-    monkeypatch.setenv("BRDFUSION_CACHE_DIR", str(tmp_path))
-    src = tmp_path / "k.cpp"
-    src.write_text('extern "C" int k_abi() { return 7; }\n')
-    a = native_build.build_shared_library(src, name="k", subdir="t", what="test kernels")
-    assert a.exists() and a.parent == tmp_path / "t"
-    assert native_build.build_shared_library(src, name="k", subdir="t", what="test kernels") == a  # cached
-    lib = native_build.NativeLibrary(src, name="k", subdir="t", what="test kernels", declare=lambda l: None,
-                                     abi_symbol="k_abi", abi_version=7)
-    assert lib.get().k_abi() == 7
-    src.write_text('extern "C" int k_abi() { return 8; }\n')
-    b = native_build.build_shared_library(src, name="k", subdir="t", what="test kernels")
-    assert b != a  # a source edit rebuilds
-    bad = native_build.NativeLibrary(src, name="k", subdir="t", what="test kernels", declare=lambda l: None,
-                                     abi_symbol="k_abi", abi_version=7)
-    with pytest.raises(DependencyError, match="ABI mismatch"):
-        bad.get()
-    src.write_text("this is not C++\n")
-    with pytest.raises(DependencyError, match="building test kernels failed"):
-        native_build.build_shared_library(src, name="k", subdir="t", what="test kernels")
-    monkeypatch.setenv("BRDFUSION_CXX", str(tmp_path / "no-such-compiler"))
-    with pytest.raises(DependencyError, match="C\\+\\+ compiler"):
-        native_build.build_shared_library(src, name="k", subdir="t", what="test kernels")
-    assert not list((tmp_path / "t").glob("tmp*"))  # no temporary files left behind
