@@ -10,572 +10,35 @@
 // The PyTorch twin is core.pbr.mis.estimate_reflected + core.pbr.lights.direct_lighting (same
 // formulas; tests compare expectations and the deterministic pieces exported below).
 //
-// Shadow rays: the binary SAH build of _visibility.cpp (included below) collapsed to an 8-wide BVH
-// (one AVX box test per node, about half the node visits of the 4-wide one); the
-// Gaussians of each leaf are stored SoA (14 float arrays in leaf order, padded by 16) so one
-// AVX-512 pass tests up to 16 Gaussians of a leaf at once, in float32. Precision: each lane first
-// moves the ray origin to the point of the ray closest to the Gaussian's mean (world metres), so
-// the Mahalanobis terms stay small (no cancellation between ~1e4-sized terms in float32).
+// The pieces live in the headers of native/: bvh.hpp (the BVH, here 8-wide: one AVX box test per
+// node, about half the node visits of the 4-wide one of _visibility.cpp), shadow.hpp (shadow rays
+// with the 16-wide AVX-512 leaf test over SoA Gaussians), brdf.hpp, envmap.hpp, rng.hpp,
+// vis_cache.hpp, parallel.hpp and vec.hpp; this file holds the per-point estimator and the C
+// entry points.
 //
 // Units: world metres; radiance in the environment map's units; directions point away from the
 // surface. Plain C ABI (ctypes releases the GIL).
 
+// One shared object holds both kernels: the 4-wide shadow rays of core.pbr.visibility are compiled
+// with this file (one translation unit, so a process holding the sources' old layout in memory
+// still builds it).
 #include "_visibility.cpp"
 
+#include "native/shadow.hpp"
+#include "native/rng.hpp"
+#include "native/vec.hpp"
+#include "native/brdf.hpp"
+#include "native/envmap.hpp"
+#include "native/vis_cache.hpp"
+#include "native/parallel.hpp"
+
+#include <atomic>
 #include <cstdio>
+#include <vector>
 
 namespace {
 
-typedef float v16f __attribute__((vector_size(64)));
-typedef int32_t v16i __attribute__((vector_size(64)));
-
-constexpr float kPi = 3.14159265358979323846f;
-constexpr float kInvPi = 0.31830988618379067154f;
-constexpr int kSoaArrays = 14;  // mux muy muz m00..m22 opacity r2max
-constexpr float kGgxAlphaMin = 1e-3f;
 constexpr float kLightDistSqMin = 1e-4f;
-
-inline v16f splat(float x) { return v16f{} + x; }
-
-// exp(x) for x in [-30, 0] (lanes outside are clamped), relative error ~2e-7.
-inline v16f vexp(v16f x) {
-    x = x < splat(-30.f) ? splat(-30.f) : x;
-    x = x > splat(0.f) ? splat(0.f) : x;
-    v16f y = x * splat(1.44269504088896341f);
-    v16i k = __builtin_convertvector(y, v16i);  // trunc toward 0
-    v16f kf = __builtin_convertvector(k, v16f);
-    v16i adj = kf > y;  // floor
-    k = k + adj;        // adj is -1 where true
-    kf = __builtin_convertvector(k, v16f);
-    v16f r = x - kf * splat(0.693147180559945309f);  // in [0, ln2)
-    v16f p = splat(1.f / 720.f);
-    p = p * r + splat(1.f / 120.f);
-    p = p * r + splat(1.f / 24.f);
-    p = p * r + splat(1.f / 6.f);
-    p = p * r + splat(0.5f);
-    p = p * r + splat(1.f);
-    p = p * r + splat(1.f);
-    v16i bits = (k + 127) << 23;
-    v16f scale;
-    __builtin_memcpy(&scale, &bits, sizeof(scale));
-    return p * scale;
-}
-
-// 8-wide BVH (AVX 8-lane box tests), collapsed from the same binary SAH build as Node4
-typedef float v8f_ __attribute__((vector_size(32)));
-typedef int32_t v8i_ __attribute__((vector_size(32)));
-
-struct Node8 {
-    float b[6][8];      // lo x, y, z then hi x, y, z of the 8 children (empty: lo = +inf, hi = -inf)
-    int32_t child[8];   // internal: Node8 index; leaf: first primitive
-    int32_t count[8];   // 0: internal; > 0: leaf; -1: empty slot
-};
-static_assert(sizeof(Node8) == 256, "Node8 must be 256 bytes");
-
-inline v8f_ load8(const float* p) {
-    v8f_ v;
-    __builtin_memcpy(&v, p, sizeof(v));
-    return v;
-}
-
-int32_t collapse8(const std::vector<Node>& n2, int32_t i2, std::vector<Node8>& out) {
-    int32_t me = (int32_t)out.size();
-    out.push_back(Node8{});
-    int32_t slots[8];
-    int ns = 0;
-    if (n2[i2].count > 0) {
-        slots[ns++] = i2;
-    } else {
-        slots[ns++] = n2[i2].first;
-        slots[ns++] = n2[i2].first + 1;
-        while (ns < 8) {
-            int best = -1;
-            float ba = -1.f;
-            for (int k = 0; k < ns; ++k)
-                if (n2[slots[k]].count == 0 && node_area(n2[slots[k]]) > ba) { ba = node_area(n2[slots[k]]); best = k; }
-            if (best < 0) break;
-            int32_t c = n2[slots[best]].first;
-            slots[best] = c;
-            slots[ns++] = c + 1;
-        }
-    }
-    Node8 nd{};
-    for (int k = 0; k < 8; ++k) {
-        if (k < ns) {
-            const Node& c = n2[slots[k]];
-            for (int a = 0; a < 3; ++a) { nd.b[a][k] = c.lo[a]; nd.b[3 + a][k] = c.hi[a]; }
-            nd.count[k] = c.count;
-            nd.child[k] = c.count > 0 ? c.first : -1;
-        } else {
-            for (int a = 0; a < 3; ++a) { nd.b[a][k] = INFINITY; nd.b[3 + a][k] = -INFINITY; }
-            nd.count[k] = -1;
-            nd.child[k] = -1;
-        }
-    }
-    for (int k = 0; k < ns; ++k)
-        if (nd.count[k] == 0) nd.child[k] = collapse8(n2, slots[k], out);
-    out[me] = nd;
-    return me;
-}
-
-struct Bvh {
-    const Node8* nodes;
-    int64_t num_nodes;
-    const float* soa;  // [14][npad]
-    int64_t npad;
-};
-
-struct TraceParams {
-    float tmin, early_stop, max_alpha;
-};
-
-struct TStats {
-    int64_t rays = 0, nodes = 0, leaves = 0;
-};
-
-// Multiply V by the transmittance of the Gaussians [first, first + cnt) of the SoA arrays.
-inline float leaf_simd(const Bvh& b, int32_t first, int32_t cnt, const float o[3], const float d[3], float tmin,
-                       float tmax, float max_alpha, float V) {
-    const float* s = b.soa;
-    const int64_t np = b.npad;
-    const v16f lane = {0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15};
-    for (int32_t base = first; base < first + cnt; base += 16) {
-        v16f mx, my, mz, a0, a1, a2, a3, a4, a5, a6, a7, a8, op, r2;
-        __builtin_memcpy(&mx, s + 0 * np + base, 64);
-        __builtin_memcpy(&my, s + 1 * np + base, 64);
-        __builtin_memcpy(&mz, s + 2 * np + base, 64);
-        __builtin_memcpy(&a0, s + 3 * np + base, 64);
-        __builtin_memcpy(&a1, s + 4 * np + base, 64);
-        __builtin_memcpy(&a2, s + 5 * np + base, 64);
-        __builtin_memcpy(&a3, s + 6 * np + base, 64);
-        __builtin_memcpy(&a4, s + 7 * np + base, 64);
-        __builtin_memcpy(&a5, s + 8 * np + base, 64);
-        __builtin_memcpy(&a6, s + 9 * np + base, 64);
-        __builtin_memcpy(&a7, s + 10 * np + base, 64);
-        __builtin_memcpy(&a8, s + 11 * np + base, 64);
-        __builtin_memcpy(&op, s + 12 * np + base, 64);
-        __builtin_memcpy(&r2, s + 13 * np + base, 64);
-        // closest approach to the mean in world space: t0 = (mu - o).d
-        v16f ex = mx - o[0], ey = my - o[1], ez = mz - o[2];
-        v16f t0 = ex * d[0] + ey * d[1] + ez * d[2];
-        v16f rx = t0 * d[0] - ex, ry = t0 * d[1] - ey, rz = t0 * d[2] - ez;  // o + t0 d - mu
-        v16f p0 = a0 * rx + a1 * ry + a2 * rz;
-        v16f p1 = a3 * rx + a4 * ry + a5 * rz;
-        v16f p2 = a6 * rx + a7 * ry + a8 * rz;
-        v16f q0 = a0 * d[0] + a1 * d[1] + a2 * d[2];
-        v16f q1 = a3 * d[0] + a4 * d[1] + a5 * d[2];
-        v16f q2 = a6 * d[0] + a7 * d[1] + a8 * d[2];
-        v16f aa = q0 * q0 + q1 * q1 + q2 * q2;
-        v16f bb = p0 * q0 + p1 * q1 + p2 * q2;
-        v16f safe_a = aa > splat(0.f) ? aa : splat(1.f);
-        v16f tl = aa > splat(0.f) ? -bb / safe_a : splat(0.f);  // offset from t0
-        v16f t = t0 + tl;
-        t = t < splat(tmin) ? splat(tmin) : t;
-        t = t > splat(tmax) ? splat(tmax) : t;
-        v16f dt = t - t0;
-        v16f x0 = p0 + dt * q0, x1 = p1 + dt * q1, x2 = p2 + dt * q2;
-        v16f rr = x0 * x0 + x1 * x1 + x2 * x2;
-        v16f alpha = op * vexp(splat(-0.5f) * rr);
-        alpha = alpha > splat(max_alpha) ? splat(max_alpha) : alpha;
-        v16i ok = (rr <= r2) & (lane < (float)(first + cnt - base));
-        v16f tr = ok ? splat(1.f) - alpha : splat(1.f);
-        // horizontal product (tree)
-        typedef float v8f __attribute__((vector_size(32)));
-        typedef float v4f_ __attribute__((vector_size(16)));
-        v8f lo8 = __builtin_shufflevector(tr, tr, 0, 1, 2, 3, 4, 5, 6, 7);
-        v8f hi8 = __builtin_shufflevector(tr, tr, 8, 9, 10, 11, 12, 13, 14, 15);
-        v8f p8 = lo8 * hi8;
-        v4f_ p4 = __builtin_shufflevector(p8, p8, 0, 1, 2, 3) * __builtin_shufflevector(p8, p8, 4, 5, 6, 7);
-        V *= (p4[0] * p4[1]) * (p4[2] * p4[3]);
-    }
-    return V;
-}
-
-inline float trace_bvh(const Bvh& b, const float o[3], const float d[3], float tmin, float tmax,
-                       const TraceParams& tp, float V, TStats& st) {
-    if (b.num_nodes <= 0 || V < tp.early_stop) return V;
-    float inv[3];
-    int near_[3], far_[3];
-    for (int k = 0; k < 3; ++k) {
-        inv[k] = d[k] != 0.f ? 1.f / d[k] : (std::signbit(d[k]) ? -1e30f : 1e30f);
-        near_[k] = inv[k] >= 0.f ? k : 3 + k;
-        far_[k] = inv[k] >= 0.f ? 3 + k : k;
-    }
-    const float ft0 = tmin - 1e-4f * (1.0f + std::fabs(tmin));
-    const float ft1 = std::isinf(tmax) ? INFINITY : tmax * (1.0f + 1e-4f) + 1e-4f;
-    const v8f_ ox = v8f_{} + o[0], oy = v8f_{} + o[1], oz = v8f_{} + o[2];
-    const v8f_ ix = v8f_{} + inv[0], iy = v8f_{} + inv[1], iz = v8f_{} + inv[2];
-    const v8f_ t0v = v8f_{} + ft0, t1v = v8f_{} + ft1;
-    int32_t stack[kStack];
-    int sp = 0;
-    stack[sp++] = 0;
-    while (sp > 0) {
-        int32_t e = stack[--sp];
-        if (e < 0) {
-            int32_t id = -e - 1;
-            const Node8& nd = b.nodes[id >> 3];
-            st.leaves++;
-            V = leaf_simd(b, nd.child[id & 7], nd.count[id & 7], o, d, tmin, tmax, tp.max_alpha, V);
-            if (V < tp.early_stop) return V;
-            continue;
-        }
-        const Node8& nd = b.nodes[e];
-        st.nodes++;
-        v8f_ txn = (load8(nd.b[near_[0]]) - ox) * ix;
-        v8f_ txf = (load8(nd.b[far_[0]]) - ox) * ix;
-        v8f_ tyn = (load8(nd.b[near_[1]]) - oy) * iy;
-        v8f_ tyf = (load8(nd.b[far_[1]]) - oy) * iy;
-        v8f_ tzn = (load8(nd.b[near_[2]]) - oz) * iz;
-        v8f_ tzf = (load8(nd.b[far_[2]]) - oz) * iz;
-        v8f_ tn = txn > tyn ? txn : tyn;
-        tn = tn > tzn ? tn : tzn;
-        tn = tn > t0v ? tn : t0v;
-        v8f_ tf = txf < tyf ? txf : tyf;
-        tf = tf < tzf ? tf : tzf;
-        tf = tf < t1v ? tf : t1v;
-        v8i_ hit = tn <= tf;
-        int idx[8];
-        float key[8];
-        int nh = 0;
-        for (int k = 0; k < 8; ++k) {
-            if (!hit[k]) continue;
-            int p = nh++;
-            while (p > 0 && key[p - 1] < tn[k]) { key[p] = key[p - 1]; idx[p] = idx[p - 1]; --p; }
-            key[p] = tn[k];
-            idx[p] = k;
-        }
-        if (sp + nh > kStack) return V;
-        for (int h = 0; h < nh; ++h) {
-            int k = idx[h];
-            stack[sp++] = nd.count[k] > 0 ? -(e * 8 + k) - 1 : nd.child[k];
-        }
-    }
-    return V;
-}
-
-// Visibility through up to two BVHs (e.g. static background + moving nodes): the product.
-inline float trace2(const Bvh* bv, int nb, const float o[3], const float d[3], float tmin, float tmax,
-                    const TraceParams& tp, TStats& st) {
-    st.rays++;
-    if (!(tmax >= tmin)) return 1.f;
-    float V = 1.f;
-    for (int i = 0; i < nb; ++i) {
-        V = trace_bvh(bv[i], o, d, tmin, tmax, tp, V, st);
-        if (V < tp.early_stop) break;
-    }
-    return V;
-}
-
-// ------------------------------------------------------------------------------------------
-// random numbers: PCG32 per point, seeded by hash(seed, point id)
-// ------------------------------------------------------------------------------------------
-inline uint64_t mix64(uint64_t x) {
-    x ^= x >> 30; x *= 0xbf58476d1ce4e5b9ULL;
-    x ^= x >> 27; x *= 0x94d049bb133111ebULL;
-    x ^= x >> 31;
-    return x;
-}
-
-struct Rng {
-    uint64_t state, inc;
-    Rng(uint64_t seed, uint64_t stream) : state(0), inc((mix64(stream) << 1u) | 1u) {
-        next(); state += mix64(seed ^ 0x9e3779b97f4a7c15ULL); next();
-    }
-    uint32_t next() {
-        uint64_t old = state;
-        state = old * 6364136223846793005ULL + inc;
-        uint32_t xs = (uint32_t)(((old >> 18u) ^ old) >> 27u);
-        uint32_t rot = (uint32_t)(old >> 59u);
-        return (xs >> rot) | (xs << ((-rot) & 31));
-    }
-    float uniform() { return (float)(next() >> 8) * (1.0f / 16777216.0f); }  // [0, 1)
-};
-
-// ------------------------------------------------------------------------------------------
-// vectors and the paper's BRDF (float32; twin of core.pbr.brdf)
-// ------------------------------------------------------------------------------------------
-struct V3 { float x, y, z; };
-inline V3 operator+(V3 a, V3 b) { return {a.x + b.x, a.y + b.y, a.z + b.z}; }
-inline V3 operator-(V3 a, V3 b) { return {a.x - b.x, a.y - b.y, a.z - b.z}; }
-inline V3 operator*(V3 a, float s) { return {a.x * s, a.y * s, a.z * s}; }
-inline float dot(V3 a, V3 b) { return a.x * b.x + a.y * b.y + a.z * b.z; }
-inline V3 cross(V3 a, V3 b) { return {a.y * b.z - a.z * b.y, a.z * b.x - a.x * b.z, a.x * b.y - a.y * b.x}; }
-inline V3 normalize(V3 a) {
-    float l2 = dot(a, a);
-    if (!(l2 > 1e-24f)) return {0.f, 0.f, 0.f};
-    return a * (1.f / std::sqrt(l2));
-}
-inline V3 load3(const float* p) { return {p[0], p[1], p[2]}; }
-
-struct Material {
-    float albedo[3];
-    float rough, metal, spec;  // clamped to [0, 1]; spec = microfacet scale
-    float alpha, k;            // GGX alpha = max(R^2, alpha_min), Schlick-Smith k = (R+1)^2/8
-    float f0[3];
-};
-
-inline float clamp01(float x) { return x < 0.f ? 0.f : (x > 1.f ? 1.f : x); }
-
-inline Material make_material(const float* a, float r, float m, float spec) {
-    Material mt;
-    r = clamp01(r);
-    m = clamp01(m);
-    for (int c = 0; c < 3; ++c) {
-        mt.albedo[c] = clamp01(a[c]);
-        mt.f0[c] = 0.04f * (1.f - m) + m * mt.albedo[c];
-    }
-    mt.rough = r;
-    mt.metal = m;
-    mt.spec = spec;
-    mt.alpha = std::max(r * r, kGgxAlphaMin);
-    mt.k = (r + 1.f) * (r + 1.f) / 8.f;
-    return mt;
-}
-
-inline float ggx_d(float nh, float sin2, float alpha) {
-    if (!(nh > 0.f)) return 0.f;
-    float a2 = alpha * alpha;
-    float den = sin2 + nh * nh * a2;
-    den = std::max(den, a2);
-    return a2 / (kPi * den * den);
-}
-
-// f(wi, wo) (1/sr) for unit n, wi, wo; zero unless both are above the surface.
-inline void brdf_eval(const Material& mt, V3 n, V3 wi, V3 wo, float out[3]) {
-    float nwi = dot(n, wi), nwo = dot(n, wo);
-    if (!(nwi > 0.f && nwo > 0.f)) { out[0] = out[1] = out[2] = 0.f; return; }
-    V3 h = normalize(wi + wo);
-    float nh = dot(n, h);
-    V3 c = cross(n, h);
-    float d = ggx_d(nh, dot(c, c), mt.alpha);
-    float ci = std::min(nwi, 1.f), co = std::min(nwo, 1.f);
-    float vis = 1.f / (4.f * (ci * (1.f - mt.k) + mt.k) * (co * (1.f - mt.k) + mt.k));
-    float oh = clamp01(dot(wo, h));
-    float x = 1.f - oh, x2 = x * x, x5 = x2 * x2 * x;
-    float dv = d * vis * mt.spec;
-    float diff = (1.f - mt.metal) * kInvPi;
-    for (int ch = 0; ch < 3; ++ch) {
-        float fr = mt.f0[ch] + (1.f - mt.f0[ch]) * x5;
-        out[ch] = diff * mt.albedo[ch] + dv * fr;
-    }
-}
-
-inline void tangent_frame(V3 n, V3& t, V3& b) {
-    float sign = n.z >= 0.f ? 1.f : -1.f;
-    float a = -1.f / (sign + n.z);
-    float bb = n.x * n.y * a;
-    t = {1.f + sign * n.x * n.x * a, sign * bb, -sign * n.x};
-    b = {bb, sign + n.y * n.y * a, -n.y};
-}
-
-inline float lum3(const float* c) { return 0.2126f * c[0] + 0.7152f * c[1] + 0.0722f * c[2]; }
-
-// probability of the VNDF lobe in the mixture (twin of brdf.specular_probability)
-inline float spec_prob(const Material& mt, float nwo) {
-    float x = 1.f - clamp01(nwo), x2 = x * x, x5 = x2 * x2 * x;
-    float fr[3], dif[3];
-    for (int c = 0; c < 3; ++c) {
-        fr[c] = mt.f0[c] + (1.f - mt.f0[c]) * x5;
-        dif[c] = (1.f - mt.metal) * mt.albedo[c];
-    }
-    float s = lum3(fr) * mt.spec, d = lum3(dif);
-    float tot = s + d;
-    if (!(tot > 1e-8f)) return 1.f;
-    return clamp01(s / tot);
-}
-
-// GGX VNDF sampling (Heitz 2018) in the local frame; returns wi in world
-inline V3 sample_vndf(V3 n, V3 t, V3 b, V3 wo, float alpha, float u1, float u2) {
-    V3 wl = {dot(wo, t), dot(wo, b), std::fabs(dot(wo, n))};
-    V3 vh = normalize(V3{alpha * wl.x, alpha * wl.y, wl.z});
-    if (dot(vh, vh) < 0.5f) vh = {0.f, 0.f, 1.f};
-    float lensq = vh.x * vh.x + vh.y * vh.y;
-    V3 t1 = lensq > 1e-12f ? V3{-vh.y, vh.x, 0.f} * (1.f / std::sqrt(lensq)) : V3{1.f, 0.f, 0.f};
-    V3 t2 = cross(vh, t1);
-    float r = std::sqrt(u1), phi = 2.f * kPi * u2;
-    float p1 = r * std::cos(phi), p2 = r * std::sin(phi);
-    float s = 0.5f * (1.f + vh.z);
-    p2 = (1.f - s) * std::sqrt(std::max(0.f, 1.f - p1 * p1)) + s * p2;
-    V3 nh = t1 * p1 + t2 * p2 + vh * std::sqrt(std::max(0.f, 1.f - p1 * p1 - p2 * p2));
-    V3 hl = normalize(V3{alpha * nh.x, alpha * nh.y, std::max(0.f, nh.z)});
-    V3 wil = hl * (2.f * dot(wl, hl)) - wl;
-    return normalize(t * wil.x + b * wil.y + n * wil.z);
-}
-
-inline float pdf_vndf(V3 n, V3 wi, V3 wo, float alpha) {
-    float nwo = dot(n, wo);
-    float c = std::fabs(nwo);
-    V3 wom = nwo < 0.f ? wo - n * (2.f * nwo) : wo;
-    V3 h = normalize(wi + wom);
-    if (!(dot(wom, h) > 0.f)) return 0.f;
-    float nh = dot(n, h);
-    V3 cr = cross(n, h);
-    float d = ggx_d(nh, dot(cr, cr), alpha);
-    float a2 = alpha * alpha;
-    return d / (2.f * (c + std::sqrt(a2 * (1.f - c * c) + c * c)));
-}
-
-inline V3 sample_cos(V3 n, V3 t, V3 b, float u1, float u2) {
-    float r = std::sqrt(u1), phi = 2.f * kPi * u2;
-    float z = std::sqrt(std::max(0.f, 1.f - u1));
-    return normalize(t * (r * std::cos(phi)) + b * (r * std::sin(phi)) + n * z);
-}
-
-inline float pdf_mix(const Material& mt, float ps, V3 n, V3 wi, V3 wo) {
-    float pc = std::max(dot(n, wi), 0.f) * kInvPi;
-    float pv = ps > 0.f ? pdf_vndf(n, wi, wo, mt.alpha) : 0.f;
-    return ps * pv + (1.f - ps) * pc;
-}
-
-// ------------------------------------------------------------------------------------------
-// environment map
-// ------------------------------------------------------------------------------------------
-struct Env {
-    int H, W;
-    const float* tex;    // [H, W, 4] radiance (exposure applied) and pdf (density over solid angle)
-    const float* alias;  // [H * W, 2] alias probability, alias index (int32 bits)
-    const float* cos_edge;  // [H + 1] cos(theta) of the row edges
-    float cr, sr;        // cos / sin of the rotation about +z
-    bool black;          // all zero: pdf is uniform, radiance 0
-};
-
-// world direction -> map direction (undo the rotation)
-inline V3 to_map(const Env& e, V3 w) { return {e.cr * w.x + e.sr * w.y, -e.sr * w.x + e.cr * w.y, w.z}; }
-
-inline void env_uv(const Env& e, V3 wm, float& u, float& v) {
-    float l = std::sqrt(dot(wm, wm));
-    float z = l > 0.f ? wm.z / l : 1.f;
-    z = std::min(1.f, std::max(-1.f, z));
-    float theta = std::acos(z);
-    float phi = std::atan2(wm.y, wm.x);
-    v = theta * kInvPi * e.H;
-    float uu = 0.25f - phi * (0.5f * kInvPi);
-    uu -= std::floor(uu);
-    u = uu * e.W;
-    if (u >= e.W) u -= e.W;
-}
-
-// bilinear radiance at continuous map coordinates (u in [0, W), v in [0, H])
-inline void env_bilinear(const Env& e, float u, float v, float out[3]) {
-    float x = u - 0.5f, y = v - 0.5f;
-    float c0f = std::floor(x), r0f = std::floor(y);
-    float fx = x - c0f, fy = y - r0f;
-    int c0 = (int)c0f, r0 = (int)r0f;
-    int ca = c0 < 0 ? c0 + e.W : (c0 >= e.W ? c0 - e.W : c0);
-    int cb = ca + 1 == e.W ? 0 : ca + 1;
-    int ra = std::min(std::max(r0, 0), e.H - 1), rb = std::min(std::max(r0 + 1, 0), e.H - 1);
-    const float* p00 = e.tex + 4 * ((int64_t)ra * e.W + ca);
-    const float* p01 = e.tex + 4 * ((int64_t)ra * e.W + cb);
-    const float* p10 = e.tex + 4 * ((int64_t)rb * e.W + ca);
-    const float* p11 = e.tex + 4 * ((int64_t)rb * e.W + cb);
-    float w00 = (1 - fy) * (1 - fx), w01 = (1 - fy) * fx, w10 = fy * (1 - fx), w11 = fy * fx;
-    for (int c = 0; c < 3; ++c) out[c] = w00 * p00[c] + w01 * p01[c] + w10 * p10[c] + w11 * p11[c];
-}
-
-inline float env_pdf_uv(const Env& e, float u, float v) {
-    if (e.black) return 1.f / (4.f * kPi);
-    int r = std::min(std::max((int)std::floor(v), 0), e.H - 1);
-    int c = std::min(std::max((int)std::floor(u), 0), e.W - 1);
-    return e.tex[4 * ((int64_t)r * e.W + c) + 3];
-}
-
-inline void env_lookup(const Env& e, V3 w, float out[3]) {
-    float u, v;
-    env_uv(e, to_map(e, w), u, v);
-    env_bilinear(e, u, v, out);
-}
-
-inline float env_pdf(const Env& e, V3 w) {
-    if (e.black) return 1.f / (4.f * kPi);
-    float u, v;
-    env_uv(e, to_map(e, w), u, v);
-    return env_pdf_uv(e, u, v);
-}
-
-// radiance and pdf of a world direction with one (u, v) computation
-inline float env_eval(const Env& e, V3 w, float out[3]) {
-    float u, v;
-    env_uv(e, to_map(e, w), u, v);
-    env_bilinear(e, u, v, out);
-    return env_pdf_uv(e, u, v);
-}
-
-// sample a direction; returns it with its pdf and (rad != nullptr) its bilinear radiance
-inline V3 env_sample(const Env& e, float u0, float ucoin, float u1, float u2, float& pdf, float* rad = nullptr) {
-    int64_t n = (int64_t)e.H * e.W;
-    int64_t i;
-    if (e.black) {  // uniform over the sphere
-        float z = 1.f - 2.f * u1;
-        float s = std::sqrt(std::max(0.f, 1.f - z * z));
-        float ph = 2.f * kPi * u2;
-        pdf = 1.f / (4.f * kPi);
-        if (rad) rad[0] = rad[1] = rad[2] = 0.f;
-        return {s * std::cos(ph), s * std::sin(ph), z};
-    }
-    i = std::min((int64_t)(u0 * (float)n), n - 1);
-    const float* al = e.alias + 2 * i;
-    if (ucoin >= al[0]) {
-        int32_t j;
-        __builtin_memcpy(&j, al + 1, 4);
-        i = j;
-    }
-    int row = (int)(i / e.W), col = (int)(i - (int64_t)row * e.W);
-    float c0 = e.cos_edge[row], c1 = e.cos_edge[row + 1];
-    float ct = c0 + u1 * (c1 - c0);
-    float st = std::sqrt(std::max(0.f, 1.f - ct * ct));
-    float phi = 0.5f * kPi - 2.f * kPi * ((float)col + u2) / (float)e.W;
-    float sp, cp;
-    sincosf(phi, &sp, &cp);
-    V3 wm = {st * cp, st * sp, ct};
-    pdf = e.tex[4 * i + 3];
-    if (rad) {
-        // continuous map coordinates straight from the sample: u = col + u2, v from theta
-        float v = std::acos(std::min(1.f, std::max(-1.f, ct))) * kInvPi * e.H;
-        v = std::min(std::max(v, (float)row), (float)(row + 1));
-        env_bilinear(e, (float)col + u2, v, rad);
-    }
-    return {e.cr * wm.x - e.sr * wm.y, e.sr * wm.x + e.cr * wm.y, wm.z};
-}
-
-// ------------------------------------------------------------------------------------------
-// visibility cache (clip reuse): lock-free open addressing over surface cells; each cell owns a
-// block of `block` visibility values (uint16, V * 65533; 0xFFFF = not traced yet, 0xFFFE = retired), one per
-// environment sample of the cell's run of pool directions
-// ------------------------------------------------------------------------------------------
-struct VisCache {
-    int64_t cap;  // cells, a power of two
-    int32_t block;
-    std::atomic<uint64_t>* keys;
-    std::atomic<uint16_t>* vals;  // [cap * block]
-    std::atomic<int64_t> used{0};
-};
-
-constexpr uint16_t kUnknown = 0xFFFF;
-constexpr uint16_t kAlwaysTrace = 0xFFFE;  // a cell/direction whose visibility differs across the cell
-constexpr float kVisScale = 65533.f;       // stored visibility V -> round(V * kVisScale)
-constexpr float kCheckDisagree = 0.25f;    // |V_true - V_cached| above which an entry is retired
-
-// slot of a cell (inserted if new and the table is below 70% full), or -1
-inline int64_t cache_cell(VisCache* c, uint64_t key) {
-    if (key == 0) key = 1;
-    int64_t mask = c->cap - 1;
-    int64_t i = (int64_t)(mix64(key) & (uint64_t)mask);
-    for (int probe = 0; probe < 64; ++probe) {
-        uint64_t k = c->keys[i].load(std::memory_order_acquire);
-        if (k == key) return i;
-        if (k == 0) {
-            if (c->used.load(std::memory_order_relaxed) * 10 > c->cap * 7) return -1;  // full: no insert
-            uint64_t expected = 0;
-            if (c->keys[i].compare_exchange_strong(expected, key, std::memory_order_acq_rel)) {
-                c->used.fetch_add(1, std::memory_order_relaxed);
-                return i;
-            }
-            if (expected == key) return i;
-        }
-        i = (i + 1) & mask;
-    }
-    return -1;
-}
 
 // ------------------------------------------------------------------------------------------
 // the integrator
@@ -890,32 +353,12 @@ void pi_build_alias(const double* prob, int64_t n, float* aprob, int32_t* aidx) 
     for (int64_t s : small) { aprob[s] = 1.0f; aidx[s] = (int32_t)s; }
 }
 
-// 8-wide BVH over n boxes (the binary SAH build of bv_build, collapsed to Node8): perm_out [n]
-// int32 (leaf order), nodes_out capacity n + 1 Node8 (256 bytes each). Returns the Node8 count.
+// 8-wide BVH over n boxes (native/bvh.hpp: the binary SAH build of bv_build, collapsed to Node8):
+// perm_out [n] int32 (leaf order), nodes_out capacity n + 1 Node8 (256 bytes each), depth_out the
+// depth of the binary tree. Returns the Node8 count.
 int64_t pi_build8(const float* lo, const float* hi, int64_t n, int32_t leaf_size, int32_t* perm_out, void* nodes_out,
                   int32_t* depth_out) {
-    *depth_out = 0;
-    if (n <= 0) return 0;
-    std::vector<int32_t> perm(n);
-    for (int64_t i = 0; i < n; ++i) perm[i] = (int32_t)i;
-    std::vector<Node> nodes;
-    Builder bld(lo, hi, n, std::max(1, (int)leaf_size), perm, nodes);
-    bld.build(n);
-    std::memcpy(perm_out, perm.data(), sizeof(int32_t) * n);
-    std::vector<Node8> wide;
-    wide.reserve(nodes.size() / 4 + 2);
-    collapse8(nodes, 0, wide);
-    std::memcpy(nodes_out, wide.data(), sizeof(Node8) * wide.size());
-    std::vector<int32_t> depth(nodes.size(), 0);
-    depth[0] = 1;
-    int32_t dmax = 1;
-    for (size_t i = 0; i < nodes.size(); ++i)
-        if (nodes[i].count == 0) {
-            depth[nodes[i].first] = depth[nodes[i].first + 1] = depth[i] + 1;
-            dmax = std::max(dmax, depth[i] + 1);
-        }
-    *depth_out = dmax;
-    return (int64_t)wide.size();
+    return build_wide<8>(lo, hi, n, leaf_size, perm_out, nodes_out, depth_out);
 }
 
 // A cache of 2^log2_cap surface cells with `block` visibility values each.
@@ -950,30 +393,17 @@ void pi_trace(const void* const* bvh_nodes, const int64_t* bvh_num, const float*
     int nb = std::min(2, (int)nbvh);
     for (int k = 0; k < nb; ++k) bv[k] = {static_cast<const Node8*>(bvh_nodes[k]), bvh_num[k], bvh_soa[k], bvh_npad[k]};
     TraceParams tp{tmin, early_stop, max_alpha};
-    std::atomic<int64_t> next{0};
     int nt = std::max(1, (int)nthreads);
     std::vector<TStats> st(nt);
-    auto work = [&](int tid) {
-        for (;;) {
-            int64_t b0 = next.fetch_add(256);
-            if (b0 >= nrays) break;
-            int64_t e0 = std::min(nrays, b0 + 256);
-            for (int64_t i = b0; i < e0; ++i) {
-                float o[3] = {origins[3 * i], origins[3 * i + 1], origins[3 * i + 2]};
-                V3 d = normalize(load3(dirs + 3 * i));
-                float dd[3] = {d.x, d.y, d.z};
-                float t1 = tmax ? tmax[i] : INFINITY;
-                out[i] = dot(d, d) > 0.5f ? trace2(bv, nb, o, dd, tmin, t1, tp, st[tid]) : 1.f;
-            }
+    parallel_chunks(nrays, 256, nt, [&](int tid, int64_t b0, int64_t e0) {
+        for (int64_t i = b0; i < e0; ++i) {
+            float o[3] = {origins[3 * i], origins[3 * i + 1], origins[3 * i + 2]};
+            V3 d = normalize(load3(dirs + 3 * i));
+            float dd[3] = {d.x, d.y, d.z};
+            float t1 = tmax ? tmax[i] : INFINITY;
+            out[i] = dot(d, d) > 0.5f ? trace2(bv, nb, o, dd, tmin, t1, tp, st[tid]) : 1.f;
         }
-    };
-    if (nt == 1 || nrays <= 256) work(0);
-    else {
-        std::vector<std::thread> th;
-        for (int t = 1; t < nt; ++t) th.emplace_back(work, t);
-        work(0);
-        for (auto& t : th) t.join();
-    }
+    });
     if (stats) {
         stats[0] = stats[1] = stats[2] = 0;
         for (auto& s : st) { stats[0] += s.rays; stats[1] += s.nodes; stats[2] += s.leaves; }
@@ -1070,26 +500,12 @@ void pi_render(const float* pos, const float* nrm, const float* wo, const float*
     }
     PointIn in{pos, nrm, wo, albedo, rough, metal, weight, bg, depth, ids};
     VisCache* vc = static_cast<VisCache*>(cache);
-    std::atomic<int64_t> next{0};
     std::vector<Counters> cs(nthreads);
-    const int64_t chunk = 32;
-    auto work = [&](int tid) {
-        for (;;) {
-            int64_t b0 = next.fetch_add(chunk);
-            if (b0 >= npts) break;
-            int64_t e0 = std::min(npts, b0 + chunk);
-            for (int64_t i = b0; i < e0; ++i)
-                shade_point(i, in, env, bv, nb, tp, L.data(), nlights, P, pool_dir, pool_pdf, pool_rad, vc, out, used,
-                            cs[tid]);
-        }
-    };
-    if (nthreads == 1 || npts <= chunk) work(0);
-    else {
-        std::vector<std::thread> th;
-        for (int t = 1; t < nthreads; ++t) th.emplace_back(work, t);
-        work(0);
-        for (auto& t : th) t.join();
-    }
+    parallel_chunks(npts, 32, nthreads, [&](int tid, int64_t b0, int64_t e0) {
+        for (int64_t i = b0; i < e0; ++i)
+            shade_point(i, in, env, bv, nb, tp, L.data(), nlights, P, pool_dir, pool_pdf, pool_rad, vc, out, used,
+                        cs[tid]);
+    });
     if (counters) {
         for (int k = 0; k < 11; ++k) counters[k] = 0;
         for (auto& c : cs) {

@@ -1,16 +1,19 @@
 """Build (once, cached) and load the PBR kernels via ctypes: the shadow-ray BVH kernels of
 ``_visibility.cpp`` and the fused integrator of ``_integrator.cpp`` (which ``#include``s the former,
-so both live in one shared object and share the BVH layout).
+so both live in one shared object). Their shared pieces are the headers of ``native/``: the BVH
+(``bvh.hpp``, one template over the node width: 4-wide for ``_visibility.cpp``, 8-wide for the
+integrator), and the integrator's shadow rays, BRDF, environment map, random numbers, visibility
+cache and work sharing.
 
 Why C++ (as the rasterizer, :mod:`core.raster._native`): Warp's CPU backend runs a launch as one
 serial loop with no control over the memory layout or SIMD; a BVH traversal with a per-ray stack,
 early exit and a 16-wide AVX-512 leaf test is plain C++ that GCC compiles well. The build is
 :mod:`core.native_build`: ``g++ -O3 -march=native -std=gnu++17 -shared -fPIC -pthread``, about
 5 s once, cached under ``$BRDFUSION_CACHE_DIR/pbr`` (default ``~/.cache/brdfusion/pbr``) keyed
-by a hash of both sources, the flags, the compiler version and the CPU, written to a temporary
-file and renamed (safe for concurrent first use). ``BRDFUSION_CXX`` overrides the compiler.
-ctypes releases the GIL for the duration of every call; the kernels spread their work over
-``std::thread`` workers themselves.
+by a hash of the source and every file it includes with ``#include "..."``, the flags, the
+compiler version and the CPU, written to a temporary file and renamed (safe for concurrent first
+use). ``BRDFUSION_CXX`` overrides the compiler. ctypes releases the GIL for the duration of every
+call; the kernels spread their work over ``std::thread`` workers themselves.
 """
 
 from __future__ import annotations
@@ -21,14 +24,15 @@ from pathlib import Path
 from core.native_build import NativeLibrary
 
 _DIR = Path(__file__).parent
+#: The compiled source; it includes ``_visibility.cpp`` and the ``native/`` headers, which the
+#: build finds and hashes into the cache key.
 _SRC = _DIR / "_integrator.cpp"
-_DEPS = (_DIR / "_visibility.cpp",)
 #: ABI of the shadow-ray entry points (``bv_abi_version``) and of the integrator (``pi_abi_version``).
 _ABI_VERSION = 2
 _PI_ABI_VERSION = 9
-#: Size in bytes of one 4-wide BVH node in the kernel (must match ``struct Node4``).
+#: Size in bytes of one 4-wide BVH node in the kernel (must match ``WideNode<4>`` of native/bvh.hpp).
 NODE_BYTES = 128
-#: Size in bytes of one 8-wide BVH node of the integrator (must match ``struct Node8``).
+#: Size in bytes of one 8-wide BVH node of the integrator (must match ``WideNode<8>``).
 NODE8_BYTES = 256
 #: float32 values per Gaussian record in the kernel (mu[3], M[9], opacity, r2max, pad[2]).
 GAUSS_FLOATS = 16
@@ -74,7 +78,7 @@ def _declare(lib: ctypes.CDLL) -> None:
 
 
 _LIB = NativeLibrary(_SRC, name="brdfusion_pbr", subdir="pbr", what="the PBR kernels", declare=_declare,
-                     abi_symbol="pi_abi_version", abi_version=_PI_ABI_VERSION, depends=_DEPS)
+                     abi_symbol="pi_abi_version", abi_version=_PI_ABI_VERSION)
 
 
 def lib() -> ctypes.CDLL:

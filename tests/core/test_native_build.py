@@ -78,3 +78,13 @@ def test_include_scan_skips_system_and_missing_headers_and_cycles(tmp_path):
     (tmp_path / "a.hpp").write_text('#pragma once\n#include "b.hpp"\n#include "k.cpp"\n')
     (tmp_path / "b.hpp").write_text('#pragma once\n#include "a.hpp"\n')
     assert native_build.local_includes([src]) == [(tmp_path / "a.hpp").resolve(), (tmp_path / "b.hpp").resolve()]
+
+
+def test_pbr_kernels_key_covers_every_header():
+    """Every header of core/pbr/native is reached from the PBR sources, so editing any of them
+    rebuilds the kernels."""
+    from core.pbr import _native
+
+    included = set(native_build.local_includes([_native._SRC]))
+    on_disk = {p.resolve() for p in (_native._DIR / "native").glob("*.hpp")}
+    assert on_disk and on_disk | {(_native._DIR / "_visibility.cpp").resolve()} == included
