@@ -11,7 +11,8 @@ Build
     version and the CPU model and feature flags, so an edit of the source or of one of its
     headers, or a different machine, rebuilds (``-march=native`` code is only valid on the same
     kind of CPU). The build writes to a temporary file in the cache directory and renames it into
-    place, so concurrent first uses (pytest-xdist, several workers) are safe. ``BRDFUSION_CXX``
+    place (:func:`core.io.atomic.atomic_output`), so concurrent first uses (pytest-xdist, several
+    workers) are safe. ``BRDFUSION_CXX``
     overrides the compiler. Builds of older sources that have not been touched for a week are
     deleted.
 
@@ -37,6 +38,7 @@ from pathlib import Path
 from typing import Callable, Sequence
 
 from core.errors import DependencyError
+from core.io.atomic import atomic_output
 
 #: Default compiler flags (kernels are plain C ABI: no torch headers, short builds).
 DEFAULT_FLAGS = ("-O3", "-march=native", "-std=gnu++17", "-shared", "-fPIC", "-pthread", "-Wno-psabi")
@@ -144,16 +146,10 @@ def build_shared_library(source: str | os.PathLike, *, name: str, subdir: str, w
     target = out_dir / f"{name}_{key}.so"
     if target.exists():
         return target
-    fd, tmp = tempfile.mkstemp(suffix=".so", dir=out_dir)
-    os.close(fd)
-    try:
+    with atomic_output(target, suffix=".so") as tmp:
         proc = subprocess.run([cxx, *flags, "-o", tmp, str(src)], capture_output=True, text=True)
         if proc.returncode != 0:
             raise DependencyError(f"building {what} failed:\n{proc.stderr[-4000:]}")
-        os.replace(tmp, target)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
     cutoff = time.time() - STALE_SECONDS
     for stale in out_dir.glob(f"{name}_*.so"):
         try:

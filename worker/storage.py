@@ -14,6 +14,8 @@ from typing import BinaryIO
 
 import fsspec
 
+from core.io.atomic import atomic_output
+
 
 class StorageError(Exception):
     """A storage key is invalid or the store failed; the message names the key."""
@@ -24,6 +26,13 @@ def check_key(key: str) -> str:
     if not key or p.is_absolute() or any(part in ("..", "") for part in key.split("/")) or "\\" in key:
         raise StorageError(f"invalid storage key {key!r}: must be a relative path without '..'")
     return key
+
+
+def _in_progress(path: str) -> bool:
+    """A file :meth:`ArtifactStore.put_file` is still writing (an ``atomic_output`` temporary,
+    ``.<name>.<random>.tmp``, or a ``.part`` file of the writer before it)."""
+    name = path.rsplit("/", 1)[-1]
+    return (name.startswith(".") and name.endswith(".tmp")) or name.endswith(".part")
 
 
 class ArtifactStore:
@@ -48,9 +57,8 @@ class ArtifactStore:
         size = os.path.getsize(local_path)
         if self.local:
             os.makedirs(os.path.dirname(dst), exist_ok=True)
-            tmp = dst + ".part"
-            shutil.copyfile(local_path, tmp)
-            os.replace(tmp, dst)
+            with atomic_output(dst) as tmp:
+                shutil.copyfile(local_path, tmp)
         else:
             self.fs.put_file(os.fspath(local_path), dst)
         return size
@@ -90,7 +98,7 @@ class ArtifactStore:
             return []
         base = self.root.rstrip("/") + "/"
         return sorted(f[len(base):] if f.startswith(base) else f
-                      for f in self.fs.find(p) if not f.endswith(".part"))
+                      for f in self.fs.find(p) if not _in_progress(f))
 
     def ping(self) -> None:
         """Raise if the store cannot be listed."""

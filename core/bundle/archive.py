@@ -19,6 +19,7 @@ from pathlib import Path, PurePosixPath
 
 from core.bundle.schema import MANIFEST_NAME
 from core.errors import BundleError, ConfigError
+from core.io.atomic import atomic_output
 
 
 @dataclass(frozen=True)
@@ -166,17 +167,17 @@ def pack_bundle(root: str | Path, out: str | Path) -> Path:
     out = Path(out)
     if not (root / MANIFEST_NAME).is_file():
         raise BundleError(f"no {MANIFEST_NAME} in {root}", str(root))
-    files = sorted(p for p in root.rglob("*") if p.is_file())
-    tmp = out.with_name(out.name + ".part")
-    if out.name.endswith(".zip"):
-        with zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_DEFLATED) as zf:
-            for p in files:
-                zf.write(p, p.relative_to(root).as_posix())
-    elif out.name.endswith((".tar.gz", ".tgz")):
-        with tarfile.open(tmp, "w:gz") as tf:
-            for p in files:
-                tf.add(p, p.relative_to(root).as_posix(), recursive=False)
-    else:
+    is_zip = out.name.endswith(".zip")
+    if not is_zip and not out.name.endswith((".tar.gz", ".tgz")):
         raise ConfigError(f"out: expected a .zip or .tar.gz path, got {out}")
-    os.replace(tmp, out)
+    files = sorted(p for p in root.rglob("*") if p.is_file())
+    with atomic_output(out) as tmp:
+        if is_zip:
+            with zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_DEFLATED) as zf:
+                for p in files:
+                    zf.write(p, p.relative_to(root).as_posix())
+        else:
+            with tarfile.open(tmp, "w:gz") as tf:
+                for p in files:
+                    tf.add(p, p.relative_to(root).as_posix(), recursive=False)
     return out
