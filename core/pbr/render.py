@@ -420,9 +420,11 @@ def render_pbr(gbuf, camera, env: EnvironmentMap, *, settings: PBRSettings | Non
     return PBRResult(hdr, ldr, lr, samples, gb, timings, counters)
 
 
-#: Frame contexts kept for reuse across clips (:class:`ClipHook` with ``reuse_across_clips``):
-#: the latest few, least recently used dropped first.
-SHARED_CONTEXTS = 2
+#: Frame contexts kept for reuse across clips (:class:`ClipHook` with ``reuse_across_clips``),
+#: least recently used dropped first. One: a visibility cache holds ~150 MB (2^21 cells x the
+#: environment samples per pixel x 2 bytes), and a request under another map still finds the
+#: BVH in it before it is replaced.
+SHARED_CONTEXTS = 1
 _shared: "OrderedDict[tuple, FrameContext]" = OrderedDict()
 _shared_lock = threading.Lock()
 _clip_hook: ContextVar["ClipHook | None"] = ContextVar("clip_hook", default=None)

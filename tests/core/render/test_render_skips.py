@@ -47,6 +47,14 @@ def _fired(res) -> dict:
     return {f["skip"]: f for f in res.metrics["skips_fired"]}
 
 
+def test_defaults_follow_the_measurement():
+    from core.render.scenario import Scenario
+
+    defaults = {f.name: f.default for f in Scenario.__dataclass_fields__.values()}
+    assert defaults["reuse_visibility_across_requests"] is True  # within noise, saves time
+    assert defaults["adaptive_rays"] is False  # within noise, saved none
+
+
 def test_the_skip_fields_are_checked():
     from core.pbr.render import Camera
     from core.relight import View
@@ -98,7 +106,7 @@ def test_visibility_is_reused_only_across_requests_of_the_same_reconstruction(lo
                             tmp_path / "c")
     assert _fired(other)["reuse_visibility_across_requests"]["reused"] == "bvh"
     # off: never reused, never recorded
-    off = render_scenario(graph, _scenario(views, env), tmp_path / "d")
+    off = render_scenario(graph, _scenario(views, env, reuse_visibility_across_requests=False), tmp_path / "d")
     assert "reuse_visibility_across_requests" not in _fired(off)
     # other shadow casters (a static object removed): not the same reconstruction, nothing reused
     parked = [n.name for n in graph.nodes if n.is_static]

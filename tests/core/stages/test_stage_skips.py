@@ -36,6 +36,15 @@ def test_stalled_fires_only_after_patience_measurements_without_a_gain():
         stalled([1.0, 2.0], 0, 0.0, higher_is_better=True)
 
 
+def test_defaults_follow_the_measurement():
+    # benchmarks/results/skips.json: only the skips within noise that save time are on
+    from core.stages.joint import JointSettings
+
+    assert PBRStageConfig().skip_sun_search
+    assert PBRStageConfig().early_stop_every == VolumeSettings().early_stop_every == 0
+    assert JointSettings().early_stop_every == 0
+
+
 def test_skip_settings_are_checked():
     for kw, name in (({"early_stop_every": -1}, "early_stop_every"), ({"early_stop_patience": 0}, "early_stop_patience"),
                      ({"early_stop_min_delta_db": -1.0}, "early_stop_min_delta_db")):
@@ -137,7 +146,7 @@ def test_pbr_skips_fire_when_they_should_and_are_in_the_summary(tiny_run, tmp_pa
     f = {x["skip"]: x for x in s["skips_fired"]}["skip_sun_search"]
     assert not s["sun_search"] and "overcast capture" in f["why"]
     # the same capture with the skip off: the search runs
-    s = fit_lighting(graph, b, tmp_path / "c", replace(base, overcast_max_clipped_sky=1.0))
+    s = fit_lighting(graph, b, tmp_path / "c", replace(base, skip_sun_search=False, overcast_max_clipped_sky=1.0))
     assert s["sun_search"] and s["skips_fired"] == [] and s["capture_sky"]["sunless"] == "overcast"
     # early stop: a 99% gain is never reached, so it stops after 3 windows of 3 steps (patience 2)
     s = fit_lighting(graph, b, tmp_path / "d", replace(base, early_stop_every=3, early_stop_min_delta=0.99))
