@@ -495,7 +495,8 @@ class ClipHook:
                 return FrameContext(env, settings, static_gaussians=shadow_static)
             g_key = (gaussians_fingerprint(shadow_static), settings.trace)
             full_key = g_key + (_env_fingerprint(env), settings.backend, settings.reuse_visibility,
-                                settings.cache_pool, settings.cache_cell_px, settings.split[0], settings.seed)
+                                settings.cache_pool, settings.cache_cell_px, settings.split[0], settings.seed,
+                                settings.normal_offset)
             with _shared_lock:
                 ctx = _shared.get(full_key)
                 if ctx is not None:
