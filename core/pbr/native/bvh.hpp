@@ -36,7 +36,10 @@ struct Node {
 static_assert(sizeof(Node) == 32, "Node must be 32 bytes");
 
 constexpr int kBins = 16;
-constexpr int kStack = 512;  // traversal stack (the Python side refuses trees deeper than 120)
+// Traversal stack: a W-wide node visited adds at most W - 1 entries. The Python side refuses
+// binary trees deeper than 120, so 512 suffices for W = 4 (3 x 120); a ray that would overflow it
+// (W = 8 on a degenerate tree) stops with the transmittance so far.
+constexpr int kStack = 512;
 
 struct Box {
     float lo[3], hi[3];
@@ -248,7 +251,7 @@ int32_t collapse(const std::vector<Node>& n2, int32_t i2, std::vector<WideNode<W
 
 // The W-wide BVH over n boxes (lo, hi: [n, 3] float32). perm_out: [n] int32 (primitive order in
 // the leaves); nodes_out: capacity n + 1 WideNode<W>; depth_out: depth of the deepest leaf of the
-// binary tree (root = 1; the traversal stack needs at most (W - 1) per level). Returns the node count.
+// binary tree (root = 1). Returns the node count.
 template <int W>
 int64_t build_wide(const float* lo, const float* hi, int64_t n, int32_t leaf_size, int32_t* perm_out,
                    void* nodes_out, int32_t* depth_out) {
@@ -314,8 +317,7 @@ struct SlabRay {
 // Visit the leaves of the tree (nodes[0] is the root) whose boxes the ray's segment touches, hit
 // children nearest first. leaf(first, count) tests the primitives [first, first + count) and
 // returns false to stop the ray. Counts the internal nodes visited in `visits`. Returns false
-// when the ray was stopped (by the leaf test, or the stack limit, unreachable for the depths the
-// Python side accepts). Always inlined: the caller (one function per leaf test) is the unit GCC
+// when the ray was stopped (by the leaf test, or by a full stack, see kStack). Always inlined: the caller (one function per leaf test) is the unit GCC
 // sees, as when each kernel had its own traversal loop.
 template <int W, class Leaf>
 __attribute__((always_inline)) inline bool traverse(const WideNode<W>* nodes, const SlabRay<W>& r, int64_t& visits, Leaf&& leaf) {
