@@ -149,7 +149,7 @@ def main() -> int:
     data = Path(a.data)
     out = Path(a.out)
     result = json.loads(out.read_text()) if out.is_file() else {}
-    result.update({"machine": machine(), "scene": "data/scenes/default (development scene)",
+    result.update({"machine": machine(), "load_average_at_start": round(os.getloadavg()[0], 2), "scene": "data/scenes/default (development scene)",
                    "threads": int(os.environ.get("OMP_NUM_THREADS", 0)) or None,
                    "max_frames": a.max_frames, "note": __doc__.split("\n\n")[1].replace("\n", " ")})
     configs = result.setdefault("configs", {})
@@ -163,6 +163,8 @@ def main() -> int:
                      on_stage=lambda n, w, s: print(f"    {n}: {w}", flush=True))
         run = RunDir(run_dir)
         secs = {st: float(run.summary(st)["seconds"]) for st in STAGES}
+        cpu = {st: run.summary(st).get("cpu_seconds") for st in STAGES}
+        load = {st: run.summary(st).get("load_average") for st in STAGES}
         after, cum = {}, 0.0
         for st in STAGES:
             cum += secs[st]
@@ -171,6 +173,9 @@ def main() -> int:
                 after[st] = {"cumulative_seconds": round(cum, 1), **evaluate(d, 64, a.max_frames)}
                 print(f"    after {st}: {after[st]}", flush=True)
         configs[name] = {"profile": prof, "iterations_scale": scale, "overrides": ov, "stage_seconds": secs,
+                         "stage_cpu_seconds": cpu, "stage_load_average": load,
+                         "pipeline_cpu_seconds": (round(sum(cpu.values()), 1) if all(v is not None for v in cpu.values())
+                                                  else None),
                          "pipeline_seconds": round(cum, 1), "after_stage": after,
                          "wall_seconds_this_call": round(time.perf_counter() - t0, 1)}
         if name == "quick":

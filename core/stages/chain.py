@@ -35,6 +35,7 @@ recorded, when it fires, under ``skips_fired`` (what and why).
 from __future__ import annotations
 
 import json
+import os
 import time
 from dataclasses import dataclass, field, fields, is_dataclass, replace
 from pathlib import Path
@@ -363,6 +364,14 @@ def scene_skips(bundle, stage: str) -> list[str]:
     return out
 
 
+def _load() -> float:
+    """The 1-minute load average (0 where the platform has none)."""
+    try:
+        return float(os.getloadavg()[0])
+    except (AttributeError, OSError):
+        return 0.0
+
+
 def run_stage(name: str, bundle, run: RunDir, settings=None, *, progress: bool = True,
               on_progress: Callable[[int, int, dict], None] | None = None) -> dict:
     """Run one stage on ``run`` (its inputs must be done) and mark it done. Returns its summary.
@@ -379,11 +388,15 @@ def run_stage(name: str, bundle, run: RunDir, settings=None, *, progress: bool =
     mod = importlib.import_module(spec.module)
     ctx = StageContext(name, bundle, run, cfg, progress, on_progress)
     ctx.out_dir.mkdir(parents=True, exist_ok=True)
-    t0 = time.perf_counter()
+    t0, c0, load0 = time.perf_counter(), time.process_time(), _load()
     summary = mod.run_stage(ctx)
     summary = {"stage": name, "paper": spec.paper, "settings": _jsonable(cfg), **summary}
     summary.setdefault("skipped", scene_skips(bundle, name))
     summary.setdefault("seconds", round(time.perf_counter() - t0, 2))
+    # CPU seconds of this process (all its threads) and the machine's load: wall seconds alone
+    # mislead on a shared machine (a stage run beside other jobs takes longer for no fault of its own)
+    summary.setdefault("cpu_seconds", round(time.process_time() - c0, 2))
+    summary.setdefault("load_average", [round(load0, 2), round(_load(), 2)])
     run.mark_done(name, summary)
     return summary
 
