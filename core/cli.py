@@ -203,7 +203,7 @@ def _scenario_common(a, bundle):
             if not isinstance(e, dict) or "op" not in e or "object_id" not in e:
                 raise CoreError(f"--edits[{i}]: needs op and object_id")
             known = {"op", "object_id", "source_object_id", "offset_m", "yaw_deg", "speed", "lateral_offset_m", "poses",
-                     "asset", "crop_to_box", "solid"}
+                     "asset", "crop_to_box", "solid", "fill_ground"}
             bad = sorted(set(e) - known)
             if bad:
                 raise CoreError(f"--edits[{i}]: unknown field(s) {bad} (fields: {sorted(known)})")
@@ -215,7 +215,7 @@ def _scenario_common(a, bundle):
                                     tuple(e.get("offset_m", (0.0, 0.0, 0.0))), float(e.get("yaw_deg", 0.0)),
                                     speed=float(e.get("speed", 1.0)), lateral_offset_m=float(e.get("lateral_offset_m", 0.0)),
                                     poses=poses, asset=e.get("asset"), crop=bool(e.get("crop_to_box", True)),
-                                    solid=bool(e.get("solid", True))))
+                                    solid=bool(e.get("solid", True)), fill_ground=bool(e.get("fill_ground", True))))
     return views, fps, lights, edits
 
 

@@ -52,7 +52,10 @@ class ObjectEdit:
     only its Gaussians inside its box (:func:`core.render.objects.crop_to_box`), so floaters
     do not travel with it. ``solid``: its inside is filled with opaque Gaussians
     (:func:`core.render.objects.solid_filler`), so it casts a solid shadow, not the faint one of
-    a half-transparent shell."""
+    a half-transparent shell. ``fill_ground`` (remove): where the removed object hid the road in
+    every frame (no observed ground Gaussian under it or along its lane within 30 m), flat road
+    Gaussians coloured like the nearest observed road are added to the background
+    (:func:`core.render.objects.ground_fill`), so its pixels show road, not sky."""
 
     op: str
     object_id: str
@@ -65,6 +68,7 @@ class ObjectEdit:
     asset: str | None = None
     crop: bool = True
     solid: bool = True
+    fill_ground: bool = True
 
 
 @dataclass
@@ -130,10 +134,12 @@ def apply_edits(graph, edits: Sequence[ObjectEdit], what: str = "edits"):
     """A new :class:`core.scene_graph.SceneGraph` with ``edits`` applied in order (the input is
     not modified). Raises ConfigError naming the edit (``<what>[i]``) that refers to an unknown
     node or inserts an existing id."""
-    from core.render.objects import load_asset, object_box, prepare_edited
+    from core.gaussians import Gaussians
+    from core.render.objects import ground_fill, load_asset, object_box, prepare_edited
     from core.scene_graph import RigidNode, SceneGraph
 
     nodes = list(graph.nodes)
+    background = graph.background
     n_times = len(graph.times)
     for i, e in enumerate(edits):
         w = f"{what}[{i}]"
@@ -141,6 +147,11 @@ def apply_edits(graph, edits: Sequence[ObjectEdit], what: str = "edits"):
         if e.op == "remove":
             if e.object_id not in names:
                 raise ConfigError(f"{w}.object_id: no object {e.object_id!r} in the scene (objects: {names})")
+            if e.fill_ground:
+                src = next(n for n in nodes if n.name == e.object_id)
+                fill = ground_fill(background, src.poses, object_box(src))
+                if fill.num:
+                    background = Gaussians.cat([background.detach(), fill.to(background.dtype)])
             nodes = [n for n in nodes if n.name != e.object_id]
         elif e.op == "move":
             if e.object_id not in names:
@@ -178,7 +189,7 @@ def apply_edits(graph, edits: Sequence[ObjectEdit], what: str = "edits"):
             nodes.append(RigidNode(e.object_id, src.cls, g, ti, poses, size=src.size))
         else:
             raise ConfigError(f"{w}.op: must be insert, move or remove, got {e.op!r}")
-    edited = SceneGraph(graph.background, nodes, graph.times)
+    edited = SceneGraph(background, nodes, graph.times)
     edited.occluders = graph.occluders  # the completed facades belong to the static scene
     return edited
 

@@ -11,6 +11,8 @@ assets, their trajectories.
   shell of small, half-transparent Gaussians that camera rays composite to a surface but a
   shadow ray from the side slips through, so its cast shadow is faint (the car looks afloat);
   filled, it casts a solid one;
+* :func:`ground_fill` - flat road Gaussians where a removed object hid the road in every frame
+  (else its pixels show sky after the removal);
 * :func:`vehicle_lights` - two headlights (spots forward) and two tail lights (red points back)
   on every vehicle node, in the node frame (they follow its pose), switchable per object;
 * :func:`export_asset` / :func:`load_asset` - a node as a file (Gaussians with their materials,
@@ -121,22 +123,34 @@ def crop_to_box(gaussians, size: Sequence[float], margin_m: float = 0.1):
 
 
 def solid_filler(gaussians, size: Sequence[float], *, voxel_m: float = 0.15, clearance_m: float = 0.3,
-                 top_margin_voxels: float = 1.5):
+                 top_margin_voxels: float = 1.5, profile_inset_voxels: float = 1.0):
     """Opaque Gaussians filling the inside of an object (node frame, box ``size`` centred at the
-    origin): on a ``voxel_m`` grid over the box's footprint, every column under the object's
-    own surface (its Gaussians with opacity > 0.3) whose four neighbours are columns too (one
-    voxel in from the sides), from ``clearance_m`` above the box's bottom (under a car's body
-    there is air) to ``top_margin_voxels`` voxels under the highest surface Gaussian of the
-    column (one voxel in from the top). Each filler is an isotropic Gaussian of 0.6 voxel,
-    opacity 0.99, with the colour and materials of its 8 nearest surface Gaussians: where the
-    shell lets a camera ray through, it sees the colour of the nearby surface. Empty when the
-    object has too few Gaussians to have a shape."""
+    origin), on a ``voxel_m`` grid, from ``clearance_m`` above the box's bottom (under a car's
+    body there is air), inside the union of two solids built from the object's own surface (its
+    Gaussians with opacity > 0.3):
+
+    * columns: every column of the footprint under a surface Gaussian whose four neighbours are
+      columns too (one voxel in from the sides), up to ``top_margin_voxels`` voxels under the
+      column's highest surface Gaussian;
+    * the side profile, extruded: per slice along the length (x), the height of the slice's
+      highest surface Gaussian and the largest |y| of its surface Gaussians above the clearance,
+      mirrored about the centre plane (a vehicle is left-right symmetric), ``profile_inset_voxels``
+      in from the sides, one slice in from the ends, ``top_margin_voxels`` under the top. A street camera at 1.6 m sees a car's near side and its back, rarely its
+      roof or far side: its shell is open, the columns alone leave it hollow and its shadow from
+      a side sun faint (measured on the default scene's reconstruction: 132 fillers, the shadow
+      of the inserted car at IoU 0.57 against Mitsuba with the sun at the side).
+
+    Each filler is an isotropic Gaussian of 0.6 voxel, opacity 0.99, with the colour and
+    materials of its 8 nearest surface Gaussians: where the shell lets a camera ray through, it
+    sees the colour of the nearby surface. Empty when the object has too few Gaussians to have a
+    shape."""
     from scipy.spatial import cKDTree
 
     from core.gaussians import Gaussians
 
     for name, v, lo, hi in (("voxel_m", voxel_m, 0.01, 5.0), ("clearance_m", clearance_m, 0.0, 10.0),
-                            ("top_margin_voxels", top_margin_voxels, 0.0, 10.0)):
+                            ("top_margin_voxels", top_margin_voxels, 0.0, 10.0),
+                            ("profile_inset_voxels", profile_inset_voxels, 0.0, 10.0)):
         if not (isinstance(v, (int, float)) and math.isfinite(v) and lo <= v <= hi):
             raise ConfigError(f"{name}: must be a finite number in [{lo}, {hi}], got {v!r}")
     sz = np.asarray([float(x) for x in size], np.float64)
@@ -151,10 +165,12 @@ def solid_filler(gaussians, size: Sequence[float], *, voxel_m: float = 0.15, cle
     nx, ny = max(int(np.ceil(sz[0] / voxel_m)), 1), max(int(np.ceil(sz[1] / voxel_m)), 1)
     if len(surf) < 16 or nx < 3 or ny < 3:
         return Gaussians.empty(g.dtype)
+    z0 = -half[2] + clearance_m
     ij = np.floor((surf[:, :2] + half[:2]) / voxel_m).astype(np.int64)
-    ok = (ij[:, 0] >= 0) & (ij[:, 0] < nx) & (ij[:, 1] >= 0) & (ij[:, 1] < ny)
+    ij[:, 0] = np.clip(ij[:, 0], 0, nx - 1)
+    ij[:, 1] = np.clip(ij[:, 1], 0, ny - 1)
     top = np.full((nx, ny), -np.inf)
-    np.maximum.at(top, (ij[ok, 0], ij[ok, 1]), surf[ok, 2])
+    np.maximum.at(top, (ij[:, 0], ij[:, 1]), surf[:, 2])
     col = np.isfinite(top)
     inner = col.copy()
     inner[1:, :] &= col[:-1, :]
@@ -162,11 +178,22 @@ def solid_filler(gaussians, size: Sequence[float], *, voxel_m: float = 0.15, cle
     inner[:, 1:] &= col[:, :-1]
     inner[:, :-1] &= col[:, 1:]
     inner[0, :] = inner[-1, :] = inner[:, 0] = inner[:, -1] = False
-    z0 = -half[2] + clearance_m
+    col_top = np.where(inner, top - top_margin_voxels * voxel_m, -np.inf)
+    # the side profile along x, extruded across the (mirrored) width
+    above = surf[:, 2] > z0
+    prof_top = np.full(nx, -np.inf)
+    prof_hw = np.zeros(nx)
+    np.maximum.at(prof_top, ij[above, 0], surf[above, 2])
+    np.maximum.at(prof_hw, ij[above, 0], np.abs(surf[above, 1]))
+    yc = (np.arange(ny) + 0.5) * voxel_m - half[1]
+    in_width = np.abs(yc)[None, :] <= np.minimum(prof_hw, half[1])[:, None] - profile_inset_voxels * voxel_m
+    in_width[0, :] = in_width[-1, :] = False
+    prof = np.where(in_width, (prof_top - top_margin_voxels * voxel_m)[:, None], -np.inf)
+    z_top = np.maximum(col_top, prof)
     centres = []
-    for i, j in zip(*np.nonzero(inner)):
-        for z in np.arange(z0, top[i, j] - top_margin_voxels * voxel_m, voxel_m):
-            centres.append(((i + 0.5) * voxel_m - half[0], (j + 0.5) * voxel_m - half[1], z + voxel_m / 2))
+    for i, j in zip(*np.nonzero(np.isfinite(z_top))):
+        for z in np.arange(z0, z_top[i, j], voxel_m):
+            centres.append(((i + 0.5) * voxel_m - half[0], yc[j], z + voxel_m / 2))
     if not centres:
         return Gaussians.empty(g.dtype)
     c = np.asarray(centres)
@@ -200,6 +227,100 @@ def prepare_edited(gaussians, size: Sequence[float], *, crop: bool = True, solid
         if f.num:
             g = Gaussians.cat([g.detach(), f.to(g.dtype)])
     return g
+
+
+#: Ground fill under a removed object: grid step, how far the strip reaches past the box ahead
+#: and behind (a camera behind a car never sees the road it hides, up to where a view ray over
+#: its roof meets the ground), the strip's margin beside the box, metres.
+GROUND_FILL_CELL_M = 0.25
+GROUND_FILL_REACH_M = 30.0
+GROUND_FILL_MARGIN_M = 0.3
+#: ... and only where observed ground lies within this distance (the road around the hole).
+GROUND_FILL_MAX_GAP_M = 4.0
+
+
+def ground_fill(background, poses, size: Sequence[float], *, cell_m: float = GROUND_FILL_CELL_M,
+                reach_m: float = GROUND_FILL_REACH_M, margin_m: float = GROUND_FILL_MARGIN_M,
+                max_gap_m: float = GROUND_FILL_MAX_GAP_M, k: int = 8):
+    """Flat road Gaussians for the ground a removed object hid in every frame.
+
+    A car that drives ahead of the camera for the whole clip hides the road under it and, for
+    tens of metres, the road beyond it: the reconstruction has no Gaussians there, so after a
+    plain removal its pixels show sky. The strip considered is, at every keyframe pose
+    ``[K, 4, 4]`` (node to world), the box's footprint (``size`` l, w, h; grown by
+    ``margin_m`` at the sides) extended ``reach_m`` ahead and behind along the node's x axis, on
+    the plane of the box's bottom (a tracked box stands on the road). Its cells (``cell_m``
+    grid, world x-y) that no observed ground Gaussian of ``background`` covers (opacity > 0.3,
+    within 0.3 m of that plane, its mean nearer than twice its largest scale, at least one cell)
+    and that have observed ground within ``max_gap_m`` (a hole in the road, not past its end)
+    get one opaque disc Gaussian (opacity 0.95, 0.6 cell wide, 2 cm thick, normal up) with the
+    colour and materials of the ``k`` nearest observed ground Gaussians: the surrounding road,
+    where the road was observed nowhere. Where the background was observed it is left as it
+    is. Empty when the background has no ground Gaussian near the strip."""
+    from scipy.spatial import cKDTree
+
+    from core.gaussians import Gaussians
+
+    for name, v, lo, hi in (("cell_m", cell_m, 0.02, 5.0), ("reach_m", reach_m, 0.0, 500.0),
+                            ("margin_m", margin_m, 0.0, 10.0), ("max_gap_m", max_gap_m, 0.0, 100.0)):
+        if not (isinstance(v, (int, float)) and math.isfinite(v) and lo <= v <= hi):
+            raise ConfigError(f"{name}: must be a finite number in [{lo}, {hi}], got {v!r}")
+    sz = np.asarray([float(x) for x in size], np.float64)
+    if sz.shape != (3,) or not np.isfinite(sz).all() or (sz <= 0).any():
+        raise ConfigError(f"size: expected 3 finite lengths > 0, got {size!r}")
+    P = np.asarray(poses.detach().cpu().numpy() if isinstance(poses, torch.Tensor) else poses, np.float64)
+    P = P.reshape(-1, 4, 4)
+    g = background.detach()
+    if g.num == 0 or len(P) == 0:
+        return Gaussians.empty(g.dtype)
+    xs = np.arange(-sz[0] / 2 - reach_m, sz[0] / 2 + reach_m + 1e-9, cell_m)
+    ys = np.arange(-sz[1] / 2 - margin_m, sz[1] / 2 + margin_m + 1e-9, cell_m)
+    gx, gy = np.meshgrid(xs, ys, indexing="ij")
+    local = np.stack([gx.ravel(), gy.ravel(), np.full(gx.size, -sz[2] / 2), np.ones(gx.size)], 1)
+    pts = np.concatenate([(p @ local.T).T[:, :3] for p in P])
+    key = np.floor(pts[:, :2] / cell_m).astype(np.int64)
+    _, first = np.unique(key, axis=0, return_index=True)
+    key, z = key[first], pts[first, 2]
+    cells = np.concatenate([(key + 0.5) * cell_m, z[:, None]], 1)  # cell centres on the box-bottom plane
+
+    means = g.means.to(torch.float64).numpy()
+    opa = g.opacities().reshape(-1).numpy()
+    cand = np.nonzero(opa > 0.3)[0]
+    if len(cand) == 0:
+        return Gaussians.empty(g.dtype)
+    # ground Gaussians: near the plane of some strip cell (nearest cell in x-y)
+    near_cell = cKDTree(cells[:, :2]).query(means[cand, :2], k=1, distance_upper_bound=5.0)
+    has = np.isfinite(near_cell[0])
+    cand = cand[has]
+    cand = cand[np.abs(means[cand, 2] - cells[near_cell[1][has], 2]) < 0.3]
+    if len(cand) == 0:
+        return Gaussians.empty(g.dtype)
+    gm = means[cand]
+    rho = np.maximum(2.0 * g.scales().to(torch.float64).numpy()[cand, :2].max(1), cell_m)
+    tree = cKDTree(gm[:, :2])
+    kk = min(16, len(cand))
+    d, nn = tree.query(cells[:, :2], k=kk)
+    d, nn = d.reshape(len(cells), kk), nn.reshape(len(cells), kk)
+    covered = ((d < rho[nn]) & (np.abs(gm[nn, 2] - cells[:, 2:3]) < 0.3)).any(1)
+    holes = cells[~covered & (d[:, 0] <= max_gap_m)]
+    if len(holes) == 0:
+        return Gaussians.empty(g.dtype)
+    _, src = tree.query(holes[:, :2], k=min(k, len(cand)))
+    src = torch.as_tensor(cand[np.asarray(src).reshape(len(holes), -1)])
+    act = g.activated()
+
+    def near(x):
+        return x.detach()[src].mean(1)
+
+    n = len(holes)
+    quats = torch.zeros(n, 4, dtype=g.dtype)
+    quats[:, 0] = 1.0
+    normals = torch.zeros(n, 3, dtype=g.dtype)
+    normals[:, 2] = 1.0
+    scales = torch.tensor([0.6 * cell_m, 0.6 * cell_m, 0.02], dtype=g.dtype).repeat(n, 1)
+    return Gaussians.from_activated(torch.as_tensor(holes, dtype=g.dtype), quats, scales,
+                                    torch.full((n, 1), 0.95, dtype=g.dtype), near(act["colors"]), normals,
+                                    near(act["albedo"]), near(act["roughness"]), near(act["metallic"]))
 
 
 def vehicle_lights(graph, *, headlight_cd: float = 3000.0, tail_light_cd: float = TAIL_LIGHT_CD,
@@ -318,5 +439,5 @@ def retime_poses(poses: torch.Tensor, time_indices: torch.Tensor, times: torch.T
 
 
 __all__ = ["VEHICLE_CLASSES", "is_vehicle", "describe_objects", "attach_sizes", "object_box", "crop_to_box",
-           "solid_filler", "prepare_edited",
+           "solid_filler", "prepare_edited", "ground_fill", "GROUND_FILL_MAX_GAP_M",
            "vehicle_lights", "export_asset", "load_asset", "retime_poses"]

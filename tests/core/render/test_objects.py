@@ -15,7 +15,8 @@ from core.pbr.envmap import EnvironmentMap
 from core.pbr.oracle import OracleSettings, oracle_gaussians
 from core.pbr.render import Camera, ClipRenderer, PBRSettings
 from core.relight import ObjectEdit, View, apply_edits
-from core.render.objects import crop_to_box, describe_objects, export_asset, load_asset, retime_poses
+from core.render.objects import (GROUND_FILL_MAX_GAP_M, crop_to_box, describe_objects, export_asset, load_asset,
+                                 retime_poses)
 from core.scene_graph import RigidNode, SceneGraph
 from core.synth import geometry as geo
 from core.synth.street import Material, Part
@@ -63,8 +64,12 @@ def test_removing_a_moving_car_removes_it_in_every_frame_and_shows_the_road(stre
     before = _gbuf(graph, views)
     gone = apply_edits(graph, [ObjectEdit("remove", "car0")])
     after = _gbuf(gone, views)
+    # the road (x in [-5, 35]) was observed everywhere: no ground fill on it, only past its ends
+    # along the car's lane, within the fill's gap limit
+    extra = np.abs(gone.background.means[graph.background.num:].numpy()[:, 0] - 15.0)
+    assert ((extra > 20.0) & (extra < 20.0 + GROUND_FILL_MAX_GAP_M + 0.5)).all(), extra
     for i, v in enumerate(views):
-        assert gone.compose(v.time_s).num == graph.background.num
+        assert gone.compose(v.time_s).num == gone.background.num
         albedo_b, albedo_a = before[i]["albedo"].numpy(), after[i]["albedo"].numpy()
         car = albedo_b[..., 0] > albedo_b[..., 1] + 0.2  # red paint in frame i
         assert car.sum() >= 30, i
@@ -226,3 +231,31 @@ def test_describe_objects_and_captured_camera_paths():
                       ({"fps": 0.0}, "fps"), ({"lateral_shift_m": float("nan")}, "lateral_shift_m")):
         with pytest.raises(ConfigError, match=field):
             views_from_capture(b, **kw)
+
+
+def test_removing_a_car_that_hid_the_road_in_every_frame_fills_the_road_from_around_it(street):
+    """A car driving ahead of the camera hides the road under and beyond it in every frame: the
+    reconstruction has no Gaussians there. Removed, its pixels show road coloured like the road
+    around it (not sky); where the road was observed nothing is added."""
+    graph, views = street
+    m = graph.background.means
+    hidden = ((m[:, 1] + 2.0).abs() < 1.2) & (m[:, 0] > 1.0) & (m[:, 0] < 30.0)
+    holed = SceneGraph(graph.background.index(torch.nonzero(~hidden).reshape(-1)), list(graph.nodes), graph.times)
+    before = _gbuf(holed, views)
+    plain = _gbuf(apply_edits(holed, [ObjectEdit("remove", "car0", fill_ground=False)]), views)
+    gone = apply_edits(holed, [ObjectEdit("remove", "car0")])
+    after = _gbuf(gone, views)
+    fill = gone.background.means[holed.background.num:]
+    assert fill.shape[0] > 100
+    # the fill lies in the hole (plus past the road's ends), flat on the road
+    in_hole = ((fill[:, 1] + 2.0).abs() < 1.3) & (fill[:, 0] > 0.8) & (fill[:, 0] < 30.2)
+    past_ends = (fill[:, 0] - 15.0).abs() > 20.0
+    assert bool((in_hole | past_ends).all()) and float(fill[:, 2].abs().max()) < 1e-6
+    for i in range(len(views)):
+        albedo_b = before[i]["albedo"].numpy()
+        car = albedo_b[..., 0] > albedo_b[..., 1] + 0.2
+        assert car.sum() >= 30, i
+        assert (plain[i]["opacity"].numpy()[car, 0] > 0.5).mean() < 0.9, i  # without the fill: sky
+        assert (after[i]["opacity"].numpy()[car, 0] > 0.5).mean() > 0.95, i
+        albedo_a = after[i]["albedo"].numpy()[car]
+        assert np.abs(albedo_a[:, 0] - albedo_a[:, 1]).max() < 0.05, i  # grey road, not red paint
