@@ -235,7 +235,7 @@ def prepare_edited(gaussians, size: Sequence[float], *, crop: bool = True, solid
 GROUND_FILL_CELL_M = 0.25
 GROUND_FILL_REACH_M = 30.0
 GROUND_FILL_MARGIN_M = 0.3
-#: ... and only where observed ground lies within this distance (the road around the hole).
+#: ... and only where observed ground surrounds the cell within this distance (a hole in the road).
 GROUND_FILL_MAX_GAP_M = 4.0
 
 
@@ -252,8 +252,8 @@ def ground_fill(background, poses, size: Sequence[float], *, cell_m: float = GRO
     the plane of the box's bottom (a tracked box stands on the road). Its cells (``cell_m``
     grid, world x-y) that no observed ground Gaussian of ``background`` covers (opacity > 0.3,
     within 0.3 m of that plane, its mean nearer than twice its largest scale, at least one cell)
-    and that have observed ground within ``max_gap_m`` (a hole in the road, not past its end)
-    get one opaque disc Gaussian (opacity 0.95, 0.6 cell wide, 2 cm thick, normal up) with the
+    and that observed ground surrounds within ``max_gap_m`` (no angular gap of 150 deg or more in
+    the directions to it: a hole in the road, not past its end) get one opaque disc Gaussian (opacity 0.95, 0.6 cell wide, 2 cm thick, normal up) with the
     colour and materials of the ``k`` nearest observed ground Gaussians: the surrounding road,
     where the road was observed nowhere. Where the background was observed it is left as it
     is. Empty when the background has no ground Gaussian near the strip."""
@@ -303,6 +303,25 @@ def ground_fill(background, poses, size: Sequence[float], *, cell_m: float = GRO
     d, nn = d.reshape(len(cells), kk), nn.reshape(len(cells), kk)
     covered = ((d < rho[nn]) & (np.abs(gm[nn, 2] - cells[:, 2:3]) < 0.3)).any(1)
     holes = cells[~covered & (d[:, 0] <= max_gap_m)]
+    if len(holes):
+        # a hole is surrounded by observed ground: its directions to the observed ground within
+        # max_gap_m (thinned to one point per half metre) leave no angular gap of 150 deg or more
+        # (past the road's end, or at its very edge, they all lie on one side)
+        _, first = np.unique(np.floor(gm[:, :2] / 0.5).astype(np.int64), axis=0, return_index=True)
+        thin = gm[first, :2]
+        kt = min(256, len(thin))
+        dt, nt = cKDTree(thin).query(holes[:, :2], k=kt, distance_upper_bound=max_gap_m)
+        dt, nt = dt.reshape(len(holes), kt), nt.reshape(len(holes), kt)
+        ok = np.isfinite(dt)
+        vec = thin[np.where(ok, nt, 0)] - holes[:, None, :2]
+        ang = np.sort(np.where(ok, np.arctan2(vec[..., 1], vec[..., 0]), np.inf), axis=1)
+        n_ok = ok.sum(1)
+        last = np.take_along_axis(ang, np.maximum(n_ok - 1, 0)[:, None], 1)[:, 0]
+        with np.errstate(invalid="ignore"):
+            gaps = np.where(np.isfinite(ang[:, 1:]), np.diff(ang, axis=1), 0.0)
+            wrap = np.where(n_ok > 0, 2 * np.pi - (last - ang[:, 0]), 2 * np.pi)
+        widest = np.maximum(gaps.max(1, initial=0.0), wrap)
+        holes = holes[(n_ok >= 3) & (widest < np.radians(150.0))]
     if len(holes) == 0:
         return Gaussians.empty(g.dtype)
     _, src = tree.query(holes[:, :2], k=min(k, len(cand)))

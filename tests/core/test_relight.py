@@ -45,6 +45,7 @@ def test_edits_move_remove_insert_and_errors(scene):
     assert [n.name for n in ins.nodes] == ["car0", "car9"]
     assert ins.compose(0.0).num == graph.compose(0.0).num + graph.node("car0").gaussians.num
     gone = apply_edits(graph, [ObjectEdit("remove", "car0")])
+    # the ground was observed everywhere (not past its edges): no ground fill
     assert gone.nodes == [] and gone.compose(0.0).num == graph.background.num
     for edit, field in ((ObjectEdit("remove", "nope"), "object_edits[0].object_id"),
                         (ObjectEdit("insert", "car0", "car0"), "object_edits[0].object_id"),
