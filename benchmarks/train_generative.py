@@ -219,9 +219,12 @@ def generate_randomised(rand: Path, old: Path, n_train: int, n_val: int, n_test:
     log = json.loads(log_p.read_text()) if log_p.is_file() else {}
     rand.mkdir(parents=True, exist_ok=True)
 
-    def record(key, t0, n):
-        log[key] = {"bundles": n, "wall_s_last_call": round(time.perf_counter() - t0, 1),
-                    "options": rand_options(frames, workers)}
+    base: dict = {}
+
+    def record(key, t0, n):  # wall_s adds up over resumed calls
+        prev = log.get(key, {})
+        b = base.setdefault(key, prev.get("wall_s", prev.get("wall_s_last_call", 0.0)))
+        log[key] = {"bundles": n, "wall_s": round(b + time.perf_counter() - t0, 1), "options": rand_options(frames, workers)}
         log_p.write_text(json.dumps(log, indent=1))
 
     plan = [("test_id", n_test)] + [(f"test_ood_{a}", n_test) for a in HELD_OUT] + [("val", n_val)]
@@ -269,6 +272,9 @@ def finetune_randomised(rand: Path, old: Path, work: Path, init_from: Path, step
     shipped = work / "inverse_randomised_shipped.onnx"  # the model before the fine-tune ("before")
     if not shipped.is_file():
         shutil.copy2(init_from, shipped)
+        card = Path(init_from).with_name(Path(init_from).stem + ".card.json")
+        if card.is_file():
+            shutil.copy2(card, shipped.with_name(shipped.stem + ".card.json"))
     train_dirs, val = split_dirs(rand, "train"), split_dirs(rand, "val")
     old_val = [old / n for n in OLD_VAL if (old / n / "bundle.json").is_file()]
     if not train_dirs or not val:
@@ -337,6 +343,7 @@ def ood_report(rand: Path, old: Path, work: Path, models: Path, threads: int, re
     from core.synth.randomise import RandomisationSettings
     from core.synth.splits import HELD_OUT, describe
 
+    t_start = time.perf_counter()
     runs = {p.parent.name: json.loads(p.read_text()) for p in sorted(work.glob("inverse_randomised_lr*/log.json"))}
     if not runs:
         raise SystemExit(f"no fine-tune runs under {work} (run the inverse-randomised step first)")
@@ -398,26 +405,35 @@ def ood_report(rand: Path, old: Path, work: Path, models: Path, threads: int, re
                            for name, lg in runs.items()}},
         "before": figs["before"], "after": figs["after"],
         "per_axis": per_axis, "ood_mean": ood_mean,
-        "decision": dec, "wall_s": wall,
+        "decision": dec,
     }
     from core.gen.train import _sha256
 
     res["before_sha256"] = _sha256(models_["before"])
     res["after_sha256"] = _sha256(models_["after"])
-    update_card(models, out / "snapshots" / f"inverse_gbuffer_{best['step']:06d}.card.json", res)
+    res["wall_s"] = {"generation": round(sum(v.get("wall_s", v.get("wall_s_last_call", 0.0)) for v in gen.values()), 1),
+                     "training_all_runs": round(sum(e.get("train_wall_s", 0.0) for lg in runs.values()
+                                                    for e in lg["entries"]), 1),
+                     "validation_scoring": round(sum(e.get("eval_wall_s", 0.0) for lg in runs.values()
+                                                     for e in lg["entries"]), 1),
+                     "this_ood_step": round(time.perf_counter() - t_start, 1), **wall}
+    shipped_card = work / "inverse_randomised_shipped.card.json"
+    if not shipped_card.is_file():
+        shutil.copy2(models / "inverse_gbuffer.card.json", shipped_card)
+    update_card(models, out / "snapshots" / f"inverse_gbuffer_{best['step']:06d}.card.json", res, shipped_card)
     d = json.loads(results.read_text()) if results.is_file() else {}
     d["ood"] = res
-    results.write_text(json.dumps(d, indent=1))
+    results.write_text(json.dumps(d, indent=2))
     print(json.dumps({"decision": dec, "ood_mean": ood_mean}, indent=1), flush=True)
     return res
 
 
-def update_card(models: Path, snap_card: Path, res: dict) -> None:
+def update_card(models: Path, snap_card: Path, res: dict, shipped_card: Path) -> None:
     """The model card of ``models/inverse_gbuffer.onnx``: the snapshot's card (plus the previous
     card's history) when it replaced the model, else the shipped card; either way with the data
     ranges, the held-out regions and the in-distribution / OOD figures of the file it describes."""
     card_p = models / "inverse_gbuffer.card.json"
-    old = json.loads(card_p.read_text())
+    old = json.loads(shipped_card.read_text())
     tag = "after" if res["decision"]["replace"] else "before"
     if tag == "after":
         card = json.loads(snap_card.read_text())
@@ -448,7 +464,7 @@ def update_card(models: Path, snap_card: Path, res: dict) -> None:
         "old_held_out": f["old_held_out"]["mean"] if f.get("old_held_out") else None,
         "decision": res["decision"],
     }
-    card_p.write_text(json.dumps(card, indent=2, default=str))
+    card_p.write_text(json.dumps(card, indent=1, default=str))
     print(f"updated {card_p} ({tag})", flush=True)
 
 
