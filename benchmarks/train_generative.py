@@ -39,8 +39,10 @@ Usage::
     python benchmarks/train_generative.py generate prepare            # data (about 2 min a scene)
     python benchmarks/train_generative.py inverse --steps 6000
     python benchmarks/train_generative.py forward --steps 6000
-    # issue #18: randomised data, fine-tune on it, in-distribution and OOD figures
-    python benchmarks/train_generative.py randomised inverse-randomised ood --steps 24000 --threads 1
+    # issue #18: randomised data, fine-tune on it, in-distribution and OOD figures (the run of
+    # models/README.md: about 57 min of generation + 36 min of training on a shared 2-core machine)
+    python benchmarks/train_generative.py randomised inverse-randomised ood --rand-train 20 --threads 1 \
+        --lr-pilot 1e-4 3e-4 --steps 18000 --work /root/brdf_data/runs
 
 The held-out evaluation for ``benchmarks/results/generative.json`` is
 ``python benchmarks/bench_generative.py --scenes <data>/h7 <data>/h8``.
@@ -497,6 +499,9 @@ def main(argv=None) -> int:
     ap.add_argument("--old-streets", nargs="*", default=list(OLD_HELD), help="old-protocol streets to generate (of v9 v10 h7 h8)")
     ap.add_argument("--train-budget-min", type=float, default=None, help="stop the train split's generation after this")
     ap.add_argument("--eval-every", type=int, default=2000, help="inverse-randomised: steps between val snapshots")
+    ap.add_argument("--lr-pilot", type=float, nargs="*", default=[],
+                    help="inverse-randomised: learning rates tried for --pilot-steps first (chosen on val)")
+    ap.add_argument("--pilot-steps", type=int, default=2000)
     ap.add_argument("--results", type=Path, default=REPO / "benchmarks" / "results" / "generative.json")
     a = ap.parse_args(argv)
     a.data.mkdir(parents=True, exist_ok=True)
@@ -507,9 +512,17 @@ def main(argv=None) -> int:
             generate_randomised(a.rand_data, a.old_data, a.rand_train, a.rand_val, a.rand_test, a.rand_frames, a.workers,
                                 tuple(a.old_streets), a.train_budget_min * 60 if a.train_budget_min else None)
         elif step == "inverse-randomised":
-            finetune_randomised(a.rand_data, a.old_data, a.work, a.init_from or a.models / "inverse_gbuffer.onnx", a.steps,
-                                a.eval_every, a.lr or 1e-4, a.p_mean if a.p_mean is not None else 2.0, a.batch,
-                                96 if a.crop == 64 else a.crop, a.threads)
+            ft = dict(rand=a.rand_data, old=a.old_data, work=a.work, init_from=a.init_from or a.models / "inverse_gbuffer.onnx",
+                      p_mean=a.p_mean if a.p_mean is not None else 2.0, batch=a.batch,
+                      crop=96 if a.crop == 64 else a.crop, threads=a.threads)
+            lr = a.lr or 1e-4
+            if a.lr_pilot:  # each learning rate for --pilot-steps; the best on val continues to --steps
+                logs = {r: finetune_randomised(**ft, steps=a.pilot_steps, eval_every=a.pilot_steps // 2, lr=r)
+                        for r in a.lr_pilot}
+                lr = min(a.lr_pilot, key=lambda r: next(e["score_val"] for e in logs[r]["entries"]
+                                                        if e["step"] == a.pilot_steps // 2 * 2))
+                print(f"learning rate chosen on val: {lr:g}", flush=True)
+            finetune_randomised(**ft, steps=a.steps, eval_every=a.eval_every, lr=lr)
         elif step == "ood":
             ood_report(a.rand_data, a.old_data, a.work, a.models, a.threads, a.results, wall, a.rand_frames)
         elif step == "generate":
