@@ -130,7 +130,7 @@ def oidn_gain(threads: int) -> dict:
 
 
 #: A map counts as sunny when its sun disc gives at least this share of the irradiance on a
-#: horizontal surface (:func:`core.gen.lighting.sky_statistics`).
+#: horizontal surface (:func:`core.lighting.prior.sky_statistics`).
 SUNNY_DIRECT_FRACTION = 0.1
 
 
@@ -138,8 +138,9 @@ def lighting(scenes: list[Path]) -> dict:
     from core.bundle import open_bundle
     from dataclasses import replace
 
-    from core.gen.lighting import (LightingSettings, brightest_direction, envmap_log_error, estimate_from_bundle,
-                                   sky_statistics, sun_direction_error_deg)
+    from benchmarks.lighting_harness import estimate_from_bundle
+    from core.lighting.prior import (LightingSettings, brightest_direction, envmap_log_error, sky_statistics,
+                                     sun_direction_error_deg)
 
     out = {}
     for sc in scenes:

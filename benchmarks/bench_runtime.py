@@ -40,6 +40,7 @@ CONFIGS = {
     "quick_x0.5": ("quick", 0.5, {}),
     "quick": ("quick", 1.0, {}),
     "quick_x1.5": ("quick", 1.5, {}),
+    "benchmark": ("benchmark", 1.0, {}),
     "quick_40k": ("quick", 1.0, {"volume": {"density.max_gaussians": 40_000},
                                  "volume2": {"density.max_gaussians": 40_000}}),
 }

@@ -172,7 +172,7 @@ def bench_pbr_early_stop(root: Path, scenes) -> dict:
 
 def bench_sun_search(root: Path, scenes) -> dict:
     from core.bundle import open_bundle
-    from core.gen.lighting import brightest_direction, sun_direction_error_deg
+    from core.lighting.prior import brightest_direction, sun_direction_error_deg
     from core.stages.chain import RunDir, profile_settings
     from core.stages.pbr import fit_lighting
 

@@ -1,5 +1,5 @@
 """Sun-direction error of the lighting prior on the development and validation streets (the
-figures quoted in ``core/gen/lighting.py`` and ``core/gen/sky_transport.py``; choices are made on
+figures quoted in ``core/lighting/prior.py`` and ``core/lighting/sky_transport.py``; choices are made on
 these, never on the held-out h7, h8, h15-h17 of ``bench_generative.py``).
 
 Streets (``quick`` profile, no relit ground truth; generated under ``--data`` when missing, about
@@ -50,7 +50,7 @@ def street_plan() -> dict[str, tuple[int, str, float]]:
 def parse_overrides(items: list[str]):
     """``key=value`` (``transport.key=value`` for the transport settings) -> LightingSettings."""
     from core.errors import ConfigError
-    from core.gen.lighting import LightingSettings
+    from core.lighting.prior import LightingSettings
 
     top, tr = {}, {}
     base = LightingSettings()
@@ -79,7 +79,8 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
 
     from core.bundle import open_bundle
-    from core.gen.lighting import brightest_direction, estimate_from_bundle, sun_direction_error_deg
+    from core.lighting.prior import brightest_direction, sun_direction_error_deg
+    from lighting_harness import estimate_from_bundle
     from train_generative import generate_street
 
     from core.errors import CoreError

@@ -171,6 +171,7 @@ def main() -> int:
     ap.add_argument("--data", required=True, help="directory of the streets (generated when missing) and runs")
     ap.add_argument("--profile", default="quick", help="reconstruction profile of the streets")
     ap.add_argument("--roles", default="dev,test", help="which streets: dev, test or both")
+    ap.add_argument("--streets", default="", help=f"comma-separated subset of {sorted(STREETS)} (default: all of --roles), run in this order")
     ap.add_argument("--rows", default="full", help=f"comma-separated rows of {sorted(ROWS)}")
     ap.add_argument("--default-scene", action="store_true", help="also the bundled default scene at --default-profile")
     ap.add_argument("--default-profile", default="quick")
@@ -189,7 +190,12 @@ def main() -> int:
                                               "streets": {n: {"role": r, "seed": s, "envmap": m, "rotation_deg": d}
                                                           for n, (r, s, m, d) in STREETS.items()}}})
     per = result.setdefault("per_street", {})
-    for name, (role, *_rest) in STREETS.items():
+    names = [n for n in a.streets.split(",") if n] or list(STREETS)
+    unknown = [n for n in names if n not in STREETS]
+    if unknown:
+        ap.error(f"--streets: unknown {unknown} (streets: {sorted(STREETS)})")
+    for name in names:
+        role = STREETS[name][0]
         if role not in roles:
             continue
         scene = make_street(data, name)

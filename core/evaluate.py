@@ -84,7 +84,7 @@ def evaluate_run(run_dir: str | Path, bundle=None, settings: EvalSettings | None
     directory) and returns it. Raises ConfigError when the bundle has no ground truth or the run
     has no reconstructed scene graph."""
     from core.bundle import open_bundle
-    from core.gen.lighting import brightest_direction, sun_direction_error_deg
+    from core.lighting.prior import brightest_direction, sun_direction_error_deg
     from core.metrics import angular_error_deg, si_psnr
     from core.raster import RasterSettings, rasterize_gaussians
     from core.stages.chain import RunDir

@@ -184,7 +184,7 @@ LIGHTING = Contract(
     diffusion=False,
     doc="Lighting prior E_g (paper Eq. 6): frames + per-pixel world ray directions + sky masks -> "
         "a low-frequency sky and a sun; composed into a 512x1024 HDR map by "
-        "core.gen.lighting.compose_envmap.",
+        "core.lighting.prior.compose_envmap.",
     inputs=(
         TensorSpec("rgb", (*_GB, 3, "H", "W"), doc="LDR frames, LDR data space [-1, 1]"),
         TensorSpec("ray_dir", (*_GB, 3, "H", "W"), doc="unit world direction of each pixel's ray "
@@ -196,7 +196,7 @@ LIGHTING = Contract(
                    "without the sun, world equirect (project convention)"),
         TensorSpec("sun_dir", ("B", 3), doc="unit world direction towards the sun"),
         TensorSpec("sun_log", ("B", 3), doc="log1p of the sun disc radiance (disc of radius "
-                   "core.gen.lighting.SUN_RADIUS_DEG)"),
+                   "core.lighting.prior.SUN_RADIUS_DEG)"),
     ),
 )
 

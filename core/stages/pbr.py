@@ -9,7 +9,7 @@ ray-traced Gaussian shadows) matches the training frames on random non-sky pixel
 
 with ``lambda_E`` decayed linearly from 1.0 to 0.1 over the stage (the supplement).
 
-``E_g`` here is the physically fitted prior of :func:`core.gen.lighting.estimate_lighting`
+``E_g`` here is the physically fitted prior of :func:`core.lighting.prior.estimate_lighting`
 (observed sky pixels placed by the poses, a parametric sky, the sun from saturated pixels and
 shading), computed on the reconstruction's own G-buffers (depth, normals, albedo rasterized from
 the scene graph), never on ground truth. The paper uses DiffusionLight for ``E_g``; this project's
@@ -71,7 +71,7 @@ class PBRStageConfig:
     """The lighting prior models cast shadows through the reconstruction's static Gaussians. Off:
     measured on the default scene after the quick volume stage, the soft, incomplete Gaussians
     put the sun 94 degrees off with the cue against 39 without it (with the street's true meshes
-    the cue finds it within 0.5 degrees: ``core.gen.lighting``)."""
+    the cue finds it within 0.5 degrees: ``core.lighting.prior``)."""
     seed: int = 0
     """Seed of the pixel subsets and the ray samples."""
     threads: int = 2
@@ -80,7 +80,7 @@ class PBRStageConfig:
     """Skip: no sun search for an overcast or night capture. When the training frames show no
     sun (at most ``overcast_max_clipped_sky`` of their sky pixels clipped: no sun disc and no
     glare) or are dark (median LDR value at most ``night_max_median_ldr``), no surface sample
-    reaches :func:`core.gen.lighting.estimate_lighting`, so its shading search over sun
+    reaches :func:`core.lighting.prior.estimate_lighting`, so its shading search over sun
     directions does not run: the lighting prior is the sky fit, with a sun only where a compact
     cluster of clipped sky pixels shows one; the summary's ``skips_fired`` says why. On: within
     noise (``benchmarks/bench_skips.py``, tiny streets under the overcast courtyard map, seeds
@@ -196,11 +196,11 @@ def sunless_capture(frames: list[_FrameData], bundle, cfg: PBRStageConfig) -> tu
 
 
 def _prior(frames: list[_FrameData], bundle, height: int, tracer=None, search_sun: bool = True):
-    """``E_g`` from the reconstruction's G-buffers (:func:`core.gen.lighting.estimate_lighting`),
+    """``E_g`` from the reconstruction's G-buffers (:func:`core.lighting.prior.estimate_lighting`),
     with cast shadows traced through the reconstruction's static Gaussians (``tracer``).
     ``search_sun`` False: no surface sample is given (depth 0 everywhere), so the estimate runs
     no sun search and is the sky fit alone."""
-    from core.gen.lighting import LightingSettings, estimate_lighting, numpy_visibility
+    from core.lighting.prior import LightingSettings, estimate_lighting, numpy_visibility
 
     imgs, poses, skies, deps, nrms, albs = [], [], [], [], [], []
     for f in frames:

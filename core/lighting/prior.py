@@ -17,7 +17,7 @@ Steps (world frame, z up; directions unit; radiance linear = ldr^gamma / exposur
      depth was tried and made it worse on the default scene: the casters of most shadows on a
      street - buildings behind or above the camera - are never in view).
      With an occluder model the default search (``sun_model="auto"``) uses the sky-patch
-     transport of :mod:`core.gen.sky_transport` instead: the sky as 48 non-negative patches
+     transport of :mod:`core.lighting.sky_transport` instead: the sky as 48 non-negative patches
      seen through the occluders (the observed sky as a prior), the light the frames saw on the
      occluders as interreflection, plus the candidate sun's shadowed term.
    * *sky*: saturated sky pixels forming a compact cluster (angular radius <= ``sun_cluster_deg``,
@@ -47,20 +47,12 @@ import numpy as np
 from core.conventions import (camera_ray_directions, envmap_directions, envmap_solid_angles, pixel_to_direction,
                               project_points)
 from core.errors import ConfigError, ShapeError
-from core.gen.sky_transport import ALBEDO_FLOOR, SkyTransport, TransportSettings, paper_brdf_weights
+from core.lighting.sky_transport import ALBEDO_FLOOR, SkyTransport, TransportSettings, paper_brdf_weights
 from core.numerics import require_finite_np
 
 #: Angular radius of the composed sun disc. The real sun is 0.27 deg; 1.5 deg spans a few pixels
 #: of a 512x1024 map (0.35 deg per pixel) so importance sampling finds it; its irradiance is exact.
 SUN_RADIUS_DEG = 1.5
-#: Gaussians of the "oracle" occluders (the street's true meshes as thin Gaussians), and the
-#: largest spacing between them (metres).
-ORACLE_GAUSSIANS = 60_000
-ORACLE_MAX_SPACING_M = 1.0
-#: ``edge_refine`` of the oracle occluders: a 4x finer lattice along face edges keeps building
-#: corners and roof edges from blurring ~0.5 m out of the facade (at a grazing sun those blurred
-#: edges shadowed most of the wall they belong to).
-ORACLE_EDGE_REFINE = 4
 #: Width of the sky's aureole (glow) term around the sun, degrees.
 GLOW_WIDTH_DEG = 15.0
 #: Largest log-amplitude of the glow term: the sky next to the sun at most e^5 ~ 150 x brighter
@@ -118,7 +110,7 @@ class LightingSettings:
     """Samples whose albedo (mean of RGB) is at or below it are left out of the shading fit
     (radiance / albedo amplifies everything that is not diffuse reflection)."""
     sun_model: str = "auto"
-    """Model of the sun search: ``"transport"`` (:mod:`core.gen.sky_transport`: the sky as
+    """Model of the sun search: ``"transport"`` (:mod:`core.lighting.sky_transport`: the sky as
     non-negative patches seen through the occluders, the observed sky as a prior, the light the
     frames saw on the occluders as interreflection), ``"lambert"`` (ambient + uniform dome +
     sun) or ``"auto"``: transport when an occluder model (``visibility``) is given, else lambert
@@ -129,12 +121,12 @@ class LightingSettings:
     sunrise streets all within 6.1 deg (lambert: one at 27.6); the three sunsets (sun 3.3 deg
     above the horizon) stay 19-50 deg off with either. The validation city street v14 (city at
     105 deg) stayed 88 deg off with either until the occluders' blurred edges were sharpened
-    (:data:`ORACLE_EDGE_REFINE`, sliver faces in :mod:`core.pbr.oracle`), the surfaces got the
+    (``benchmarks/lighting_harness.py``'s ``ORACLE_EDGE_REFINE``, sliver faces in :mod:`core.pbr.oracle`), the surfaces got the
     paper's BRDF (``surface_brdf``) and the search several starts (``search_starts``): 3.2 deg."""
     surface_brdf: str = "paper"
     """Reflectance model of the surface samples in the transport fit: ``"lambert"`` (radiance /
     albedo = irradiance / pi) or ``"paper"``: the paper's BRDF with the samples' roughness and
-    metallic and the direction they were seen from (:func:`core.gen.sky_transport.paper_brdf_weights`;
+    metallic and the direction they were seen from (:func:`core.lighting.sky_transport.paper_brdf_weights`;
     needs ``albedo`` and ``roughness``, else Lambert, see ``diagnostics["surface_brdf"]``).
     Asphalt (albedo 0.09, roughness 0.85) seen 5-10 deg above the road reflects a sun ahead of
     the camera 2-7x more than Lambert says. Measured with the sharpened oracle occluders and
@@ -297,7 +289,7 @@ def _lambert_score(nrm, shading, vis_of=None):
 
 def _transport_score(tr):
     """``score(dirs [K, 3]) -> [K]``: mean |residual| of the sky-patch transport fit
-    (:class:`core.gen.sky_transport.SkyTransport`) per candidate sun."""
+    (:class:`core.lighting.sky_transport.SkyTransport`) per candidate sun."""
     def score(cands):
         cols = tr.sun_columns(cands)
         return np.array([tr.fit(cols[:, j])[0] for j in range(cols.shape[1])])
@@ -602,91 +594,6 @@ def estimate_lighting(frames_ldr, cam_to_world, intrinsics, sky_masks, depth, no
         diag["sun_irradiance_fit"] = e_sun.tolist()
     env = compose_envmap(coeffs, sun if source != "none" else None, e_sun, ground, s.height)
     return LightingEstimate(env, _unit(sun), e_sun.astype(np.float32), source, coeffs, ground.astype(np.float32), diag)
-
-
-def estimate_from_bundle(root, split: str = "train", settings: LightingSettings | None = None,
-                         depth_noise_m: float = 0.0, normal_noise_deg: float = 0.0, albedo_noise: float = 0.0,
-                         use_albedo: bool = True, seed: int = 0, occluders: str = "none",
-                         use_materials: bool = True, oracle_gaussians: int = ORACLE_GAUSSIANS) -> LightingEstimate:
-    """:func:`estimate_lighting` on a bundle's frames of ``split``, with the bundle's ground-truth
-    depth, normals, albedo (and, with ``use_materials``, roughness and metallic) standing in for
-    the reconstruction (optionally perturbed: Gaussian depth noise in metres, normal noise in
-    degrees, multiplicative log-normal albedo noise of std ``albedo_noise`` per pixel, to measure
-    robustness).
-
-    ``occluders`` (the cast-shadow cue): ``"none"``; ``"lidar"``: Gaussians at the capture's
-    LiDAR points (every sweep, seen by a camera or not, opacity 0.9), what any reconstruction
-    starts from; ``"oracle"``: the synthetic street's ground-truth meshes as thin Gaussians
-    (:func:`core.pbr.oracle.street_scene_graph`, static parts at time 0), the stand-in for a
-    converged reconstruction: a face lattice of ``oracle_gaussians`` Gaussians plus 4x finer
-    bands along the face edges (:data:`ORACLE_EDGE_REFINE`; about 3x as many in all), thin
-    slivers (:attr:`core.pbr.oracle.OracleSettings.thin_slivers`).
-    """
-    from core.bundle import open_bundle
-
-    b = open_bundle(root, validate=False)
-    visibility = occluder_tracer(b, occluders, oracle_gaussians)
-    frames = sorted(b.frames(split), key=lambda fr: fr.time_index)
-    if not frames:
-        raise ConfigError(f"{root}: no frames in split {split!r}")
-    cam = b.camera(frames[0])
-    rng = np.random.default_rng(seed)
-    imgs, poses, skies, deps, nrms, albs, rough, metal = [], [], [], [], [], [], [], []
-    for fr in frames:
-        gt = b.load_ground_truth(fr)
-        imgs.append(b.load_image(fr))
-        poses.append(fr.cam_to_world)
-        sk = b.load_sky_mask(fr)
-        skies.append(sk if sk is not None else gt["depth"][..., 0] <= 0)
-        d = gt["depth"][..., 0].copy()
-        n = gt["normal"].copy()
-        if depth_noise_m > 0:
-            d = np.where(d > 0, np.maximum(d + rng.normal(0, depth_noise_m, d.shape), 0.05), 0)
-        if normal_noise_deg > 0:
-            n = n + rng.normal(0, math.radians(normal_noise_deg), n.shape)
-            n = _unit(n) * (np.linalg.norm(gt["normal"], axis=-1, keepdims=True) > 0.5)
-        deps.append(d)
-        nrms.append(n)
-        al = gt["albedo"]
-        if albedo_noise > 0:
-            al = np.clip(al * np.exp(rng.normal(0, albedo_noise, al.shape[:2] + (1,))), 0, 1)
-        albs.append(al)
-        rough.append(gt["roughness"][..., 0])
-        metal.append(gt["metallic"][..., 0])
-    m = b.manifest
-    return estimate_lighting(np.stack(imgs), np.stack(poses), (cam.fx, cam.fy, cam.cx, cam.cy), np.stack(skies),
-                             np.stack(deps), np.stack(nrms).astype(np.float32),
-                             albedo=np.stack(albs) if use_albedo else None, exposure=m.ldr_exposure,
-                             gamma=m.ldr_gamma, settings=settings, visibility=visibility,
-                             roughness=np.stack(rough) if use_materials else None,
-                             metallic=np.stack(metal) if use_materials else None)
-
-
-def occluder_tracer(bundle, occluders: str, oracle_gaussians: int = ORACLE_GAUSSIANS):
-    """A shadow-ray tracer (:class:`core.pbr.visibility.GaussianTracer`) of a bundle's occluders
-    (see :func:`estimate_from_bundle`), or None for ``"none"``."""
-    from dataclasses import replace
-
-    from core.pbr.visibility import GaussianTracer, TraceSettings
-
-    if occluders == "none":
-        return None
-    if occluders == "lidar":
-        from core.train.init_lidar import LidarInitConfig, gaussians_from_lidar
-
-        g, _ = gaussians_from_lidar(bundle, replace(LidarInitConfig(), drop_unseen=False, init_opacity=0.9,
-                                                     max_background_points=150_000))
-    elif occluders == "oracle":
-        from core.gen.prepare import synth_config_of
-        from core.pbr.oracle import OracleSettings, street_scene_graph
-
-        cfg = synth_config_of(bundle)
-        st = OracleSettings(max_spacing=ORACLE_MAX_SPACING_M, edge_refine=ORACLE_EDGE_REFINE, thin_slivers=True)
-        graph, _, _ = street_scene_graph(cfg, (0,), settings=st, budget=int(oracle_gaussians))
-        g = graph.compose(0.0)
-    else:
-        raise ConfigError(f"occluders: must be 'none', 'lidar' or 'oracle', got {occluders!r}")
-    return numpy_visibility(GaussianTracer.from_gaussians(g.detach(), TraceSettings(leaf_size=16)))
 
 
 def numpy_visibility(tracer):

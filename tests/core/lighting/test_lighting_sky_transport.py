@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from core.errors import ConfigError, NumericalError, ShapeError
-from core.gen import lighting as L
-from core.gen import sky_transport as T
+from core.lighting import prior as L
+from core.lighting import sky_transport as T
 
 
 def _wall_visibility(origins, dirs, t_max=None):
