@@ -32,6 +32,7 @@ sys.path.insert(0, str(REPO))
 
 
 def sky_floaters(run, b) -> dict:
+    from core.camera import Camera
     from core.raster import RasterSettings, rasterize_gaussians
 
     graph, _sky, stage = run.load_scene()
@@ -41,8 +42,7 @@ def sky_floaters(run, b) -> dict:
         for f in b.frames(split):
             c = b.camera(f)
             g = graph.compose(float(b.manifest.times[f.time_index])).detach()
-            r = rasterize_gaussians(g, torch.as_tensor(np.asarray(f.cam_to_world), dtype=g.dtype), c.fx, c.fy, c.cx,
-                                    c.cy, c.width, c.height, settings=RasterSettings())
+            r = rasterize_gaussians(g, Camera.from_bundle(c, f), settings=RasterSettings())
             sky = b.load_ground_truth(f)["depth"].reshape(c.height, c.width) <= 0
             if sky.any():
                 fr.append(float((r.opacity[..., 0].numpy()[sky] > 0.1).mean()))

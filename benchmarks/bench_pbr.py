@@ -64,7 +64,7 @@ import torch  # noqa: E402
 from core.pbr import EnvironmentMap  # noqa: E402
 from core.pbr.lights import PointLight, SpotLight  # noqa: E402
 from core.pbr.oracle import OracleSettings, street_oracle, street_scene_graph  # noqa: E402
-from core.pbr.render import Camera, ClipRenderer, PBRSettings, render_pbr, tonemap  # noqa: E402
+from core.pbr.render import ClipRenderer, PBRSettings, render_pbr, tonemap  # noqa: E402
 from core.synth.config import profile  # noqa: E402
 from core.synth.generate import load_envmap  # noqa: E402
 
@@ -319,7 +319,7 @@ class Bench:
         ``ss`` x ``ss`` sub-pixels with ``rays`` rays each and box-averaged (Mitsuba's pixel
         filter). ``exact_gbuffers``: shade Mitsuba's own G-buffers (sampled at the sub-pixel
         centres) instead of the rasterised oracle (isolates the Gaussian approximation)."""
-        from core.synth.mitsuba_backend import PinholeCamera, render_beauty, render_gbuffers
+        from core.synth.mitsuba_backend import render_beauty, render_gbuffers
         from core.synth.mitsuba_paper import render_direct_paper
 
         cfg = profile("benchmark", width=self.cfg.width, height=self.cfg.height, street_length_m=90)
@@ -332,7 +332,6 @@ class Bench:
         envnp = load_envmap(hdri)
         env = EnvironmentMap(envnp)
         CACHE.mkdir(parents=True, exist_ok=True)
-        pcam = PinholeCamera(cam.cam_to_world, cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height)
 
         def reference(kind: str, n: int) -> np.ndarray:
             mpath = CACHE / f"mitsuba_{hdri}_{kind}_{cfg.width}x{cfg.height}_{n}.npy"
@@ -340,22 +339,21 @@ class Bench:
                 return np.load(mpath)
             t = time.perf_counter()
             if kind == "paper":
-                ref_ = render_direct_paper(parts, envnp, pcam, spp=n, seed=7)
+                ref_ = render_direct_paper(parts, envnp, cam, spp=n, seed=7)
             else:
-                ref_ = render_beauty(parts, envnp, pcam, spp=n, max_depth=2, seed=7)
+                ref_ = render_beauty(parts, envnp, cam, spp=n, max_depth=2, seed=7)
             np.save(mpath, ref_)
             print(f"    mitsuba {hdri} ({kind}) {n} spp: {time.perf_counter() - t:.0f} s")
             return ref_
 
         ref = reference("paper", spp)
-        cs = Camera(cam.cam_to_world, cam.fx * ss, cam.fy * ss, cam.cx * ss, cam.cy * ss, cam.width * ss,
-                    cam.height * ss)
+        cs = cam.scaled(ss)
         s = PBRSettings(rays_per_pixel=rays, sampling="mis", threads=self.threads)
         t = time.perf_counter()
         if exact_gbuffers:
             from core.pbr.visibility import GaussianTracer
 
-            gt = render_gbuffers(parts, PinholeCamera(cs.cam_to_world, cs.fx, cs.fy, cs.cx, cs.cy, cs.width, cs.height))
+            gt = render_gbuffers(parts, cs)
             hit = (~gt["sky"])[..., None].astype(np.float32)
             gb = {"opacity": torch.from_numpy(hit), "depth": torch.from_numpy(gt["depth"] * hit),
                   "normal": torch.from_numpy(gt["normal"]), "albedo": torch.from_numpy(gt["albedo"]),

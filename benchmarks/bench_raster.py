@@ -44,6 +44,7 @@ if str(ROOT) not in sys.path:
 
 import torch  # noqa: E402
 
+from core.camera import Camera  # noqa: E402
 from core.raster import RasterSettings, rasterize  # noqa: E402
 
 PROFILES = {
@@ -54,7 +55,7 @@ PROFILES = {
 
 def make_scene(width: int, height: int, n: int, overlap: float = 80.0, seed: int = 0,
                dtype=torch.float32):
-    """A dense random scene and its camera; returns (tensors list, camera tuple)."""
+    """A dense random scene and its camera; returns (tensors list, :class:`core.camera.Camera`)."""
     g = torch.Generator().manual_seed(seed)
 
     def rand(*shape):
@@ -79,14 +80,14 @@ def make_scene(width: int, height: int, n: int, overlap: float = 80.0, seed: int
     normals = torch.nn.functional.normalize(torch.randn(n, 3, generator=g, dtype=torch.float64), dim=-1)
     rough, metal = rand(n), rand(n)
     tensors = [t.to(dtype) for t in (means, quats, scales, opac, colors, normals, albedo, rough, metal)]
-    cam = (torch.eye(4, dtype=dtype), f, f, cx, cy, width, height)
+    cam = Camera.from_intrinsics(torch.eye(4, dtype=dtype), f, f, cx, cy, width, height)
     return tensors, cam
 
 
 def _forward_backward(tensors, cam, settings, weights=None):
     leaves = [t.detach().clone().requires_grad_() for t in tensors]
     t0 = time.perf_counter()
-    out = rasterize(*leaves, *cam, settings=settings)
+    out = rasterize(*leaves, cam, settings=settings)
     t1 = time.perf_counter()
     if weights is None:
         weights = torch.rand(out.packed.shape, generator=torch.Generator().manual_seed(1), dtype=out.packed.dtype)
@@ -122,7 +123,7 @@ try:  # reset the RSS high-water mark (Linux >= 4.0) so earlier peaks (imports) 
     before, key = status("VmRSS:"), "VmHWM:"
 except OSError:
     before, key = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, None
-out = rasterize(*leaves, *cam, settings=s)
+out = rasterize(*leaves, cam, settings=s)
 (out.packed * w).sum().backward()
 after = status(key) if key else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
 print((after - before) / 1024.0)
@@ -154,9 +155,9 @@ def run(profile: str, threads: int | None, runs: int, warmup: int, overlap: floa
         tensors, cam = make_scene(width, height, n, overlap=overlap)
         # per-pixel counts
         with torch.no_grad():
-            no_stop = rasterize(*tensors, *cam, settings=RasterSettings(threads=threads, transmittance_min=0.0,
+            no_stop = rasterize(*tensors, cam, settings=RasterSettings(threads=threads, transmittance_min=0.0,
                                                                         collect_stats=True))
-            normal = rasterize(*tensors, *cam, settings=RasterSettings(threads=threads, collect_stats=True))
+            normal = rasterize(*tensors, cam, settings=RasterSettings(threads=threads, collect_stats=True))
         overl = float(no_stop.stats[..., 1].double().mean())
         evaluated = float(normal.stats[..., 0].double().mean())
         contributed = float(normal.stats[..., 1].double().mean())

@@ -76,6 +76,7 @@ def sheet(graph, sky, bundle, frame, relit_ldr: np.ndarray | None, gt_ldr: np.nd
           threads: int = 2) -> np.ndarray:
     """[H', W', 3] in [0, 1]: the frame's input, novel view, albedo, normal, roughness, relit and
     ground truth side by side, each captioned."""
+    from core.camera import Camera
     from core.conventions import camera_ray_directions
     from core.raster import RasterSettings, rasterize_gaussians
 
@@ -83,8 +84,7 @@ def sheet(graph, sky, bundle, frame, relit_ldr: np.ndarray | None, gt_ldr: np.nd
     t = float(bundle.manifest.times[frame.time_index])
     with torch.no_grad():
         g = graph.compose(t).detach()
-        r = rasterize_gaussians(g, torch.as_tensor(np.asarray(frame.cam_to_world), dtype=g.dtype), c.fx, c.fy, c.cx,
-                                c.cy, c.width, c.height, settings=RasterSettings(threads=threads))
+        r = rasterize_gaussians(g, Camera.from_bundle(c, frame), settings=RasterSettings(threads=threads))
         dirs = torch.from_numpy(camera_ray_directions(frame.cam_to_world, c.fx, c.fy, c.cx, c.cy, c.width, c.height))
         nvs = (r.color + (1 - r.opacity) * sky(dirs.to(g.dtype)).to(r.color.dtype)).numpy()
         inv = (1.0 / r.opacity.clamp_min(OPACITY_EPS)).numpy()

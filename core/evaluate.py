@@ -84,6 +84,7 @@ def evaluate_run(run_dir: str | Path, bundle=None, settings: EvalSettings | None
     directory) and returns it. Raises ConfigError when the bundle has no ground truth or the run
     has no reconstructed scene graph."""
     from core.bundle import open_bundle
+    from core.camera import Camera
     from core.lighting.prior import brightest_direction, sun_direction_error_deg
     from core.metrics import angular_error_deg, si_psnr
     from core.raster import RasterSettings, rasterize_gaussians
@@ -119,8 +120,7 @@ def evaluate_run(run_dir: str | Path, bundle=None, settings: EvalSettings | None
         for f in test:
             c = b.camera(f)
             g = graph.compose(float(times[f.time_index])).detach()
-            c2w = torch.as_tensor(np.asarray(f.cam_to_world), dtype=g.dtype)
-            r = rasterize_gaussians(g, c2w, c.fx, c.fy, c.cx, c.cy, c.width, c.height, settings=rs)
+            r = rasterize_gaussians(g, Camera.from_bundle(c, f), settings=rs)
             dirs = torch.from_numpy(camera_ray_directions(f.cam_to_world, c.fx, c.fy, c.cx, c.cy, c.width,
                                                           c.height)).to(g.dtype)
             rgb = r.color + (1 - r.opacity) * sky(dirs).to(g.dtype)

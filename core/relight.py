@@ -2,7 +2,7 @@
 PBR pass under a new environment map and local lights, written as multi-layer EXR frames, an MP4
 and a PNG preview (the library side of the service's ``relight`` and ``night`` jobs).
 
-Frames: cameras are OpenCV (``core.pbr.render.Camera``), times in seconds of the scene graph.
+Frames: cameras are OpenCV (:class:`core.camera.Camera`), times in seconds of the scene graph.
 Outputs in ``out_dir``: ``frames/<name>.exr`` (HDR beauty ``rgb`` and ``Lr`` in float32, the
 G-buffers; see :func:`core.pbr.render.write_frame_exr`), ``relit.mp4`` (the LDR frames after the
 denoiser) and ``preview.png`` (the middle frame). The EXR beauty is the PBR pass's estimate before
@@ -21,9 +21,10 @@ from typing import Callable, Sequence
 import numpy as np
 import torch
 
+from core.camera import Camera
 from core.errors import ConfigError
 from core.pbr.envmap import EnvironmentMap
-from core.pbr.render import Camera, ClipRenderer, PBRSettings, write_frame_exr
+from core.pbr.render import ClipRenderer, PBRSettings, write_frame_exr
 
 OUTPUT_KINDS = ("exr", "mp4", "png")
 
@@ -240,7 +241,7 @@ def render_clip(scene, env: EnvironmentMap, views: Sequence[View], out_dir: str 
         if denoiser == "diffusion" or denoiser_fallback == "diffusion":
             for k in extra:
                 extra[k].append(r.gbuffers[k].detach().to(torch.float32).numpy())
-            c2w.append(np.asarray(v.camera.cam_to_world, np.float64))
+            c2w.append(v.camera.pose_numpy())
         if on_frame is not None:
             on_frame(i + 1, len(views))
     res.seconds_per_frame = (time.perf_counter() - t0) / len(views)

@@ -123,7 +123,8 @@ def render_pbr_inputs(bundle_dir: str | Path, settings: PerturbSettings | None =
     from core.bundle import open_bundle
     from core.pbr.envmap import EnvironmentMap
     from core.pbr.oracle import OracleSettings, street_scene_graph
-    from core.pbr.render import Camera, ClipRenderer, PBRSettings, write_frame_exr
+    from core.camera import Camera
+    from core.pbr.render import ClipRenderer, PBRSettings, write_frame_exr
 
     s = settings or PerturbSettings()
     b = open_bundle(bundle_dir, validate=False)
@@ -146,9 +147,7 @@ def render_pbr_inputs(bundle_dir: str | Path, settings: PerturbSettings | None =
                                              gamma=m.ldr_gamma, threads=s.threads, seed=s.seed * 7919 + int(cfg.seed)))
     frames = [f for f in m.frames if f.split in splits]
     for k, fr in enumerate(frames):
-        c = b.camera(fr)
-        cam = Camera(np.asarray(fr.cam_to_world, np.float64), c.fx, c.fy, c.cx, c.cy, c.width, c.height)
-        res = r.render(cam, time_s=float(m.times[fr.time_index]), frame_index=k)
+        res = r.render(Camera.from_bundle(b.camera(fr), fr), time_s=float(m.times[fr.time_index]), frame_index=k)
         if not torch.isfinite(res.hdr).all():
             raise ConfigError(f"{bundle_dir}: frame {fr.id}: non-finite PBR render")
         write_frame_exr(out / f"{fr.id}.exr", res)

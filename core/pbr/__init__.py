@@ -23,12 +23,12 @@ from core.pbr.envmap import EnvironmentMap
 from core.pbr.lights import LightSet, PointLight, SpotLight, direct_lighting, lights_to_world
 from core.pbr.mis import estimate_reflected
 from core.pbr.visibility import GaussianTracer, TraceSettings, visibility_reference
-from core.pbr.render import (Camera, ClipRenderer, PBRResult, PBRSettings, render_pbr, sample_pixels,  # noqa: E402
+from core.pbr.render import (ClipRenderer, PBRResult, PBRSettings, render_pbr, sample_pixels,  # noqa: E402
                              write_clip_mp4, write_frame_exr)
 
 __all__ = [
     "EnvironmentMap", "cook_torrance", "face_forward", "sample_brdf", "pdf_brdf", "estimate_reflected",
     "PointLight", "SpotLight", "LightSet", "lights_to_world", "direct_lighting", "GaussianTracer",
-    "TraceSettings", "visibility_reference", "Camera", "ClipRenderer", "PBRResult", "PBRSettings", "render_pbr",
+    "TraceSettings", "visibility_reference", "ClipRenderer", "PBRResult", "PBRSettings", "render_pbr",
     "sample_pixels", "write_clip_mp4", "write_frame_exr",
 ]

@@ -520,11 +520,11 @@ def street_oracle(cfg, frames=(0,), *, settings: OracleSettings | None = None, b
     trajectory whose cameras are returned (and used for the spacing); ``lambert``: replace every
     material by a pure Lambertian of the same albedo (validation of geometry, visibility and
     lighting against Mitsuba's ``diffuse`` BSDF, rendered with ``specular = 0``). ``cameras``
-    are :class:`core.pbr.render.Camera`. Parts are taken at ``time_index``.
+    are :class:`core.camera.Camera`. Parts are taken at ``time_index``.
     """
     from dataclasses import replace
 
-    from core.pbr.render import Camera
+    from core.camera import Camera
     from core.synth.generate import camera_pose, ego_positions, intrinsics
     from core.synth.street import EGO_LANE_Y, make_street
 
@@ -534,9 +534,9 @@ def street_oracle(cfg, frames=(0,), *, settings: OracleSettings | None = None, b
     if lambert:
         parts = [replace(p, material=replace(p.material, model="lambert")) for p in parts]
     ci = intrinsics(cfg)
-    cams = [Camera(camera_pose(cfg, float(ego[t]), EGO_LANE_Y), ci.fx, ci.fy, ci.cx, ci.cy, cfg.width, cfg.height)
-            for t in frames]
-    pos = np.stack([c.cam_to_world[:3, 3] for c in cams])
+    cams = [Camera.from_intrinsics(camera_pose(cfg, float(ego[t]), EGO_LANE_Y), ci.fx, ci.fy, ci.cx, ci.cy, cfg.width,
+                                   cfg.height) for t in frames]
+    pos = np.stack([c.pose_numpy()[:3, 3] for c in cams])
     g = oracle_gaussians(parts, pos, ci.fx, settings, budget=budget, dtype=dtype)
     return g, cams, parts
 
@@ -547,7 +547,7 @@ def street_scene_graph(cfg, frames=(0,), *, settings: OracleSettings | None = No
     poses from the street's track), times ``t * cfg.frame_dt``. Returns ``(graph, cameras,
     street)``; ``graph.compose(t * cfg.frame_dt)`` holds the Gaussians of ``street.parts_at(t)``.
     ``budget`` spreads about that many Gaussians over the whole street at time 0."""
-    from core.pbr.render import Camera
+    from core.camera import Camera
     from core.scene_graph import RigidNode, SceneGraph
     from core.synth.generate import camera_pose, ego_positions, intrinsics
     from core.synth.street import EGO_LANE_Y, Part, make_street
@@ -556,9 +556,9 @@ def street_scene_graph(cfg, frames=(0,), *, settings: OracleSettings | None = No
     ego = ego_positions(cfg)
     street = make_street(cfg, ego)
     ci = intrinsics(cfg)
-    cams = [Camera(camera_pose(cfg, float(ego[t]), EGO_LANE_Y), ci.fx, ci.fy, ci.cx, ci.cy, cfg.width, cfg.height)
-            for t in frames]
-    pos = np.stack([c.cam_to_world[:3, 3] for c in cams])
+    cams = [Camera.from_intrinsics(camera_pose(cfg, float(ego[t]), EGO_LANE_Y), ci.fx, ci.fy, ci.cx, ci.cy, cfg.width,
+                                   cfg.height) for t in frames]
+    pos = np.stack([c.pose_numpy()[:3, 3] for c in cams])
     scale = 1.0 if budget is None else budget_scale(street.parts_at(0), pos, ci.fx, budget, s)
     static_parts = list(street.static_parts)
     movers = []

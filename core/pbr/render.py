@@ -51,6 +51,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from core.camera import Camera
 from core.errors import ConfigError, ShapeError
 from core.gaussians import Gaussians
 from core.pbr.envmap import EnvironmentMap, luminance
@@ -176,27 +177,6 @@ class PBRSettings:
         return (n + 1) // 2, n // 2
 
 
-@dataclass(frozen=True)
-class Camera:
-    """OpenCV pinhole camera: ``cam_to_world`` [4, 4] (rigid), intrinsics in pixels, size."""
-
-    cam_to_world: np.ndarray
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-    width: int
-    height: int
-
-    @classmethod
-    def of(cls, cam) -> "Camera":
-        """Any object with the same attributes (e.g. ``core.synth.mitsuba_backend.PinholeCamera``)."""
-        if isinstance(cam, Camera):
-            return cam
-        return cls(np.asarray(cam.cam_to_world, np.float64), float(cam.fx), float(cam.fy), float(cam.cx),
-                   float(cam.cy), int(cam.width), int(cam.height))
-
-
 @dataclass
 class ShadingInputs:
     """Per-pixel shading inputs ``[H*W, C]`` (torch, flattened row-major) from the G-buffers."""
@@ -246,9 +226,10 @@ def shading_inputs(gbuf, camera: Camera, sky_opacity: float = 1.0 / 255.0) -> Sh
     dt = g["opacity"].dtype
     o = g["opacity"].reshape(-1, 1).clamp(0.0, 1.0)
     inv = torch.where(o > 0, 1.0 / torch.where(o > 0, o, torch.ones_like(o)), torch.zeros_like(o))
-    d = torch.from_numpy(camera_ray_directions(cam.cam_to_world, cam.fx, cam.fy, cam.cx, cam.cy, w, h)).to(dt)
+    pose = cam.pose_numpy()
+    d = torch.from_numpy(camera_ray_directions(pose, cam.fx, cam.fy, cam.cx, cam.cy, w, h)).to(dt)
     d = d.reshape(-1, 3)
-    c2w = torch.as_tensor(np.asarray(cam.cam_to_world, np.float64), dtype=dt)
+    c2w = torch.as_tensor(pose, dtype=dt)
     fwd = c2w[:3, 2]
     z = (g["depth"].reshape(-1, 1) * inv).clamp_min(0.0)
     pts = c2w[:3, 3] + d * (z / (d @ fwd)[:, None])
@@ -594,8 +575,7 @@ class ClipRenderer:
                 gs = Gaussians.cat([g, occ.detach().to(g.dtype)]) if occ is not None and occ.num else g
                 dyn = GaussianTracer.from_gaussians(gs, self.settings.trace) if gs.num else None
             t_bvh = time.perf_counter() - t0
-            out = rasterize_gaussians(g, torch.as_tensor(cam.cam_to_world, dtype=g.dtype), cam.fx, cam.fy, cam.cx,
-                                      cam.cy, cam.width, cam.height, settings=self.raster_settings)
+            out = rasterize_gaussians(g, cam, settings=self.raster_settings)
             t_raster = time.perf_counter() - t0 - t_bvh
             ls = lights_to_world(self.lights, poses) if self.lights else None
             res = render_pbr(out, cam, self.env, settings=self.settings, tracers=[dyn] if dyn else [], lights=ls,

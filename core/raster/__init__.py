@@ -16,8 +16,9 @@ Files
 Typical use::
 
     from core.raster import RasterSettings, rasterize
+    camera = Camera.from_intrinsics(cam_to_world, fx, fy, cx, cy, width, height)  # core.camera
     out = rasterize(means, quats, scales, opacities, colors, normals, albedo, roughness, metallic,
-                    cam_to_world, fx, fy, cx, cy, width, height, background=bg)
+                    camera, background=bg)
     loss = (out.color - target).abs().mean() + 0.1 * (out.opacity - mask).square().mean()
     loss.backward()   # gradients for every Gaussian attribute, background and cam_to_world
 
@@ -27,22 +28,25 @@ then compete with the kernels for the cores; on 2-core machines ``OMP_WAIT_POLIC
 the worker's environment avoids that (the benchmark runs with the default environment).
 """
 
+from core.camera import Camera
+from core.errors import ConfigError
 from core.raster.settings import FEATURE_CHANNELS, RasterOutput, RasterSettings
 from core.raster.splat import quat_to_rotmat, rasterize, safe_normalize_quat
 
 
-def rasterize_gaussians(gaussians, cam_to_world, fx, fy, cx, cy, width, height, background=None,
-                        settings=None):
+def rasterize_gaussians(gaussians, camera: Camera, background=None, settings=None):
     """:func:`rasterize` for a :class:`core.gaussians.Gaussians` (its activated attributes, the
-    colour as seen from this camera's centre); gradients flow to the Gaussians' unconstrained
-    parameters."""
-    import torch
-
-    c2w = cam_to_world if isinstance(cam_to_world, torch.Tensor) else torch.as_tensor(cam_to_world)
-    a = gaussians.activated(cam_center=c2w[:3, 3].detach())
+    colour as seen from this camera's centre) and one :class:`core.camera.Camera`, whose
+    ``cam_to_world`` is used in the Gaussians' dtype (``camera.to(gaussians.dtype)``: a float64
+    pose is rounded for float32 Gaussians, as every caller did); gradients flow to the Gaussians'
+    unconstrained parameters and to a pose that requires grad."""
+    if not isinstance(camera, Camera):
+        raise ConfigError(f"camera: expected a core.camera.Camera, got {type(camera).__name__}")
+    camera = camera.to(gaussians.dtype)
+    a = gaussians.activated(cam_center=camera.cam_to_world[:3, 3].detach())
     return rasterize(a["means"], a["quats"], a["scales"], a["opacities"], a["colors"], a["normals"],
-                     a["albedo"], a["roughness"], a["metallic"], cam_to_world, fx, fy, cx, cy,
-                     width, height, background=background, settings=settings)
+                     a["albedo"], a["roughness"], a["metallic"], camera, background=background,
+                     settings=settings)
 
 
 __all__ = [

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import torch
 
+from core.camera import Camera
 from core.raster.settings import RasterSettings
 
 
@@ -30,10 +31,12 @@ def _rotation(q: torch.Tensor) -> torch.Tensor:
 
 
 def reference_rasterize(means, quats, scales, opacities, colors, normals, albedo, roughness, metallic,
-                        cam_to_world, fx, fy, cx, cy, width, height, background=None,
-                        settings: RasterSettings | None = None) -> dict:
-    """Same arguments as :func:`core.raster.rasterize`; returns a dict of ``[H, W, C]`` tensors
-    (color, opacity, depth, normal, albedo, roughness, metallic, transmittance)."""
+                        camera: Camera, background=None, settings: RasterSettings | None = None) -> dict:
+    """Same arguments as :func:`core.raster.rasterize` (one :class:`core.camera.Camera`); returns
+    a dict of ``[H, W, C]`` tensors (color, opacity, depth, normal, albedo, roughness, metallic,
+    transmittance)."""
+    cam_to_world, width, height = camera.cam_to_world, camera.width, camera.height
+    fx, fy, cx, cy = camera.fx, camera.fy, camera.cx, camera.cy
     s = settings or RasterSettings()
     dt = means.dtype
     n = means.shape[0]

@@ -26,17 +26,17 @@ GIL released, on ``settings.threads`` threads):
 Gradients reach means, quats, scales, opacities, colors, normals, albedo, roughness,
 metallic, background and ``cam_to_world`` (through ``torch.linalg.inv``), so scene-graph node
 poses composed in torch before the call (transforming means/quats/normals) get gradients by
-ordinary autograd. The intrinsics are plain numbers (no gradient).
+ordinary autograd. The camera is a :class:`core.camera.Camera`; its intrinsics ``K`` get no gradient.
 """
 
 from __future__ import annotations
 
 import ctypes
-import math
 from typing import Any
 
 import torch
 
+from core.camera import Camera
 from core.errors import ConfigError, NumericalError, ShapeError
 from core.numerics import require_finite
 from core.rotations import quat_normalize, quat_to_rotmat  # noqa: F401 - re-exported
@@ -205,23 +205,6 @@ def _check_tensor(x: Any, name: str, shape: tuple, dtype: torch.dtype | None,
     return x
 
 
-def _check_scalar(v: Any, name: str, positive: bool = False):
-    if isinstance(v, torch.Tensor):
-        if v.numel() != 1:
-            raise ShapeError(f"{name}: expected a scalar, got shape {list(v.shape)}")
-        val = float(v.detach())
-    else:
-        try:
-            val = float(v)
-        except (TypeError, ValueError) as exc:
-            raise ConfigError(f"{name}: expected a number, got {v!r}") from exc
-    if not math.isfinite(val):
-        raise NumericalError(f"{name}: non-finite value {val}")
-    if positive and val <= 0:
-        raise ConfigError(f"{name}: must be > 0, got {val}")
-    return val
-
-
 def rasterize(
     means: torch.Tensor,
     quats: torch.Tensor,
@@ -232,13 +215,7 @@ def rasterize(
     albedo: torch.Tensor,
     roughness: torch.Tensor,
     metallic: torch.Tensor,
-    cam_to_world: torch.Tensor,
-    fx: float,
-    fy: float,
-    cx: float,
-    cy: float,
-    width: int,
-    height: int,
+    camera: Camera,
     background: torch.Tensor | None = None,
     settings: RasterSettings | None = None,
 ) -> RasterOutput:
@@ -249,8 +226,9 @@ def rasterize(
     means [N, 3] world metres; quats [N, 4] wxyz (need not be normalised; zero -> identity);
     scales [N, 3] metres (>= 0); opacities [N] or [N, 1] in [0, 1] (clamped); colors [N, 3];
     normals [N, 3] world, unit; albedo [N, 3]; roughness [N] or [N, 1]; metallic [N] or [N, 1].
-    cam_to_world: [4, 4] rigid OpenCV camera-to-world (tensor, may require grad). fx, fy, cx, cy:
-    pixels, numbers or 0-d tensors (no gradient). width, height: pixels. background: [3] color
+    camera: one :class:`core.camera.Camera` (not a batch): ``cam_to_world`` [4, 4] rigid OpenCV
+    camera-to-world, metres (any float dtype, may require grad: it gets a gradient); ``K`` in
+    pixels (no gradient); ``width`` x ``height`` pixels, the output size. background: [3] color
     behind the Gaussians (default black; gets a gradient if it requires one).
 
     Returns a :class:`RasterOutput` of ``[H, W, C]`` tensors; gradients flow to every tensor
@@ -259,9 +237,11 @@ def rasterize(
     settings = settings if settings is not None else RasterSettings()
     if not isinstance(settings, RasterSettings):
         raise ConfigError(f"settings: expected RasterSettings, got {type(settings).__name__}")
-    for name, v in (("width", width), ("height", height)):
-        if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-            raise ConfigError(f"{name}: expected an int >= 1, got {v!r}")
+    if not isinstance(camera, Camera):
+        raise ConfigError(f"camera: expected a core.camera.Camera, got {type(camera).__name__}")
+    if camera.is_batched:
+        raise ShapeError(f"camera: expected one camera, got a batch of {len(camera)} (index it)")
+    width, height = camera.width, camera.height
     means = _check_tensor(means, "means", (None, 3), None, False)
     dtype = means.dtype
     if dtype not in (torch.float32, torch.float64):
@@ -281,19 +261,8 @@ def rasterize(
     albedo = _check_tensor(albedo, "albedo", (n, 3), dtype, False)
     roughness = col(roughness, "roughness")
     metallic = col(metallic, "metallic")
-    cam_to_world = _check_tensor(torch.as_tensor(cam_to_world) if not isinstance(cam_to_world, torch.Tensor)
-                                 else cam_to_world, "cam_to_world", (4, 4), None)
-    c2w_d = cam_to_world.detach().double()
-    r = c2w_d[:3, :3]
-    if (not torch.allclose(r.T @ r, torch.eye(3, dtype=torch.float64), atol=1e-3)
-            or abs(float(torch.linalg.det(r)) - 1.0) > 1e-3
-            or not torch.allclose(c2w_d[3], torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=torch.float64), atol=1e-6)):
-        raise ConfigError("cam_to_world: expected a rigid transform (orthonormal rotation, det +1, "
-                          "last row 0 0 0 1)")
-    fx = _check_scalar(fx, "fx", positive=True)
-    fy = _check_scalar(fy, "fy", positive=True)
-    cx = _check_scalar(cx, "cx")
-    cy = _check_scalar(cy, "cy")
+    cam_to_world = _check_tensor(camera.cam_to_world, "cam_to_world", (4, 4), None)  # rigid: Camera checked
+    fx, fy, cx, cy = camera.fx, camera.fy, camera.cx, camera.cy
     if background is None:
         background = torch.zeros(3, dtype=dtype)
     else:

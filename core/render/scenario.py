@@ -205,7 +205,7 @@ class Scenario:
 def views_from_frames(bundle, split: str = "test", start: int = 0, stop: int | None = None,
                       step: int = 1) -> list[View]:
     """Views of the capture's frames (``split``: train, test or all), sliced ``start:stop:step``."""
-    from core.pbr.render import Camera
+    from core.camera import Camera
 
     if split not in ("train", "test", "all"):
         raise ConfigError(f"split: must be train, test or all, got {split!r}")
@@ -219,15 +219,14 @@ def views_from_frames(bundle, split: str = "test", start: int = 0, stop: int | N
     for f in frames:
         c = bundle.camera(f)
         t = times[f.time_index] if f.time_index < len(times) else float(f.time_index)
-        out.append(View(Camera(np.asarray(f.cam_to_world, np.float64), c.fx, c.fy, c.cx, c.cy, c.width, c.height),
-                        float(t), f.id))
+        out.append(View(Camera.from_bundle(c, f), float(t), f.id))
     return out
 
 
 def views_from_path(bundle, camera: str, poses: Sequence[tuple], what: str = "camera_path") -> list[View]:
     """Views along a new camera path: ``poses`` = ``[(cam_to_world 4x4, time_s), ...]`` with the
     intrinsics of the scene's camera ``camera``."""
-    from core.pbr.render import Camera
+    from core.camera import Camera
 
     cam = bundle.manifest.cameras.get(camera)
     if cam is None:
@@ -242,7 +241,7 @@ def views_from_path(bundle, camera: str, poses: Sequence[tuple], what: str = "ca
         r = m[:3, :3]
         if not np.allclose(r.T @ r, np.eye(3), atol=1e-4) or abs(np.linalg.det(r) - 1) > 1e-4:
             raise ConfigError(f"{what}.poses[{i}].cam_to_world: the rotation is not orthonormal")
-        out.append(View(Camera(m, cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height), float(t), f"{i:05d}"))
+        out.append(View(Camera.from_bundle(cam, m), float(t), f"{i:05d}"))
     return out
 
 
@@ -257,7 +256,7 @@ def views_from_capture(bundle, *, split: str = "train", camera: str | None = Non
     between two captured frames are interpolated (linear position, slerp rotation). Without
     ``fps`` the captured frames themselves are used (in the time range). ConfigError names the
     field."""
-    from core.pbr.render import Camera
+    from core.camera import Camera
     from core.rotations import quat_slerp, quat_to_rotmat, rotmat_to_quat
 
     if split not in ("train", "test", "all"):
@@ -319,7 +318,7 @@ def views_from_capture(bundle, *, split: str = "train", camera: str | None = Non
         if nrm > 1e-9:
             m[:3, 3] += lateral_shift_m * left / nrm
         m[2, 3] += height_shift_m
-        out.append(View(Camera(m, c.fx, c.fy, c.cx, c.cy, c.width, c.height), float(t), f"{i:05d}"))
+        out.append(View(Camera.from_bundle(c, m), float(t), f"{i:05d}"))
     return out
 
 

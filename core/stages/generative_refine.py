@@ -60,6 +60,7 @@ class RefineSettings:
 def render_intrinsics(graph, bundle, frames, min_opacity: float = 0.5, threads: int = 2) -> dict[str, dict]:
     """``frame_id -> {albedo, roughness, metallic, normal (world), depth (metres, 0 = sky),
     opacity}`` rendered from the scene graph, channels-last float32 (expected values given a hit)."""
+    from core.camera import Camera
     from core.raster import RasterSettings, rasterize_gaussians
 
     rs = RasterSettings(threads=threads)
@@ -67,10 +68,8 @@ def render_intrinsics(graph, bundle, frames, min_opacity: float = 0.5, threads: 
     out = {}
     with torch.no_grad():
         for f in frames:
-            c = bundle.camera(f)
             g = graph.compose(float(times[f.time_index])).detach()
-            r = rasterize_gaussians(g, torch.as_tensor(np.asarray(f.cam_to_world), dtype=g.dtype), c.fx, c.fy, c.cx,
-                                    c.cy, c.width, c.height, settings=rs)
+            r = rasterize_gaussians(g, Camera.from_bundle(bundle.camera(f), f), settings=rs)
             o = r.opacity.double()
             hit = o > min_opacity
             inv = torch.where(hit, 1.0 / o.clamp_min(min_opacity), torch.zeros_like(o))

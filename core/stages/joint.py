@@ -117,7 +117,7 @@ def run_stage(ctx) -> dict:
     from core.io.envmap_file import read_envmap, write_envmap
     from core.metrics import ssim
     from core.pbr.envmap import EnvironmentMap, resample
-    from core.pbr.render import Camera, PBRSettings, render_pbr
+    from core.pbr.render import PBRSettings, render_pbr
     from core.pbr.visibility import GaussianTracer, TraceSettings
     from core.raster import RasterSettings
     from core.stages.volume import (VolumeModel, _bce, _prior_tensors, _views, alignment_loss, lidar_depth_loss,
@@ -242,9 +242,8 @@ def run_stage(ctx) -> dict:
             photo = prior = l_vol * 0
             if cand.numel():
                 idx = cand[torch.randperm(cand.numel(), generator=gen)[:cfg.pixels]]
-                cam = Camera(v.cam_to_world.double().numpy(), v.fx, v.fy, v.cx, v.cy, v.width, v.height)
                 env.rebuild_sampler()
-                res = render_pbr(out, cam, env, settings=ps, tracers=tracers[v.frame_id], pixels=idx, generator=gen)
+                res = render_pbr(out, v.camera, env, settings=ps, tracers=tracers[v.frame_id], pixels=idx, generator=gen)
                 photo = (res.ldr.to(torch.float32) - v.image.reshape(-1, 3)[idx]).abs().mean()
                 prior = (env.param - log_prior).abs().mean()
             l_pbr = photo + cfg.lambda_e * prior

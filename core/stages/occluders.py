@@ -28,6 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from core.camera import Camera
 from core.errors import ConfigError
 from core.gaussians import Gaussians
 
@@ -135,7 +136,7 @@ def _continued_columns(centres, bottoms, normals, roof, views, s: OccluderSettin
     line its side showed against the sky (``max_height_m`` when it showed none)."""
     if s.extend_m <= 0 or len(views) < 2 or not len(centres):
         return None
-    pos = np.array([np.asarray(v[0], np.float64)[:3, 3] for v in views])
+    pos = np.array([v[0].pose_numpy()[:3, 3] for v in views])
     d = pos[-1, :2] - pos[0, :2]
     if np.linalg.norm(d) < 1e-3:
         return None
@@ -163,12 +164,12 @@ def _continued_columns(centres, bottoms, normals, roof, views, s: OccluderSettin
     return np.concatenate(out_c), np.concatenate(out_z), np.concatenate(out_cap), np.concatenate(out_n)
 
 
-def _seen_free(points: np.ndarray, views: list[tuple[np.ndarray, float, float, float, float, int, int,
-                                                     np.ndarray, np.ndarray]], margin: float) -> np.ndarray:
+def _seen_free(points: np.ndarray, views: list[tuple[Camera, np.ndarray, np.ndarray]], margin: float) -> np.ndarray:
     """[P] bool: some view saw through the point (sky pixel, or the point well in front of the
-    rendered depth). ``views``: (cam_to_world, fx, fy, cx, cy, W, H, sky [H, W] bool, depth [H, W])."""
+    rendered depth). ``views``: (camera, sky [H, W] bool, depth [H, W])."""
     free = np.zeros(len(points), bool)
-    for c2w, fx, fy, cx, cy, w, h, sky, depth in views:
+    for cam, sky, depth in views:
+        c2w, fx, fy, cx, cy, w, h = cam.pose_numpy(), cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height
         r, t = c2w[:3, :3], c2w[:3, 3]
         pc = (points - t) @ r  # world -> camera (OpenCV)
         z = pc[:, 2]
@@ -190,7 +191,7 @@ def complete_occluders(background: Gaussians, views, settings: OccluderSettings 
 
     Args:
         background: the static reconstruction (world frame, metres).
-        views: the capture's frames as (cam_to_world [4, 4], fx, fy, cx, cy, W, H, sky [H, W] bool,
+        views: the capture's frames as (camera: one :class:`core.camera.Camera`, sky [H, W] bool,
             depth [H, W] metres along the optical axis, 0 = none) tuples.
         settings: :class:`OccluderSettings`.
     Returns Gaussians (possibly empty) in ``background``'s dtype.
@@ -236,9 +237,9 @@ __all__ = ["OccluderSettings", "complete_occluders", "facade_columns"]
 
 
 def capture_views(graph, views, raster_settings=None) -> list[tuple]:
-    """The (cam_to_world, fx, fy, cx, cy, W, H, sky, depth) tuples of :func:`complete_occluders`
-    for the capture's frames: ``views`` are objects with ``cam_to_world`` [4, 4], ``fx, fy, cx, cy,
-    width, height``, ``time`` (seconds) and ``nonsky`` ([H, W, 1], 1 = surface, or None: then the
+    """The (camera, sky, depth) tuples of :func:`complete_occluders` for the capture's frames:
+    ``views`` are objects with ``camera`` (a :class:`core.camera.Camera`), ``time`` (seconds) and
+    ``nonsky`` ([H, W, 1], 1 = surface, or None: then the
     reconstruction's own opacity < 0.5 counts as sky). Depth is the reconstruction's, rendered."""
     from core.numerics import OPACITY_EPS
     from core.raster import rasterize_gaussians
@@ -247,12 +248,10 @@ def capture_views(graph, views, raster_settings=None) -> list[tuple]:
     with torch.no_grad():
         for v in views:
             g = graph.compose(float(v.time)).detach()
-            c2w = torch.as_tensor(v.cam_to_world, dtype=g.dtype)
-            r = rasterize_gaussians(g, c2w, v.fx, v.fy, v.cx, v.cy, v.width, v.height, settings=raster_settings)
+            r = rasterize_gaussians(g, v.camera, settings=raster_settings)
             op = r.opacity[..., 0].double()
             depth = torch.where(op > 0.5, r.depth[..., 0].double() / op.clamp_min(OPACITY_EPS),
                                 torch.zeros_like(op)).numpy()
             sky = (v.nonsky[..., 0] < 0.5).numpy() if getattr(v, "nonsky", None) is not None else (op < 0.5).numpy()
-            out.append((np.asarray(v.cam_to_world, np.float64), float(v.fx), float(v.fy), float(v.cx), float(v.cy),
-                        int(v.width), int(v.height), sky, depth))
+            out.append((v.camera, sky, depth))
     return out

@@ -133,7 +133,7 @@ class _FrameData:
 
 
 def _frames(graph, bundle, cfg: PBRStageConfig) -> list[_FrameData]:
-    from core.pbr.render import Camera
+    from core.camera import Camera
     from core.pbr.visibility import GaussianTracer, TraceSettings
     from core.raster import RasterSettings, rasterize_gaussians
 
@@ -150,12 +150,10 @@ def _frames(graph, bundle, cfg: PBRStageConfig) -> list[_FrameData]:
     with torch.no_grad():
         for i in pick:
             fr = frames[int(i)]
-            c = bundle.camera(fr)
-            cam = Camera(np.asarray(fr.cam_to_world, np.float64), c.fx, c.fy, c.cx, c.cy, c.width, c.height)
+            cam = Camera.from_bundle(bundle.camera(fr), fr)
             t = float(times[fr.time_index])
             g = graph.compose(t).detach()
-            r = rasterize_gaussians(g, torch.as_tensor(cam.cam_to_world, dtype=g.dtype), cam.fx, cam.fy, cam.cx,
-                                    cam.cy, cam.width, cam.height, settings=rs)
+            r = rasterize_gaussians(g, cam, settings=rs)
             gb = {k: v.detach() for k, v in r.as_dict().items()}
             tracers = [static_tracer] if static_tracer is not None else []
             if g.num > static.num:
@@ -208,7 +206,7 @@ def _prior(frames: list[_FrameData], bundle, height: int, tracer=None, search_su
         o = f.gbuf["opacity"].reshape(h, w, 1).double()
         inv = torch.where(o > 1e-3, 1.0 / torch.where(o > 1e-3, o, torch.ones_like(o)), torch.zeros_like(o))
         imgs.append(f.target.reshape(h, w, 3).numpy())
-        poses.append(f.camera.cam_to_world)
+        poses.append(f.camera.pose_numpy())
         sky = (o[..., 0] < 0.5).numpy()
         skies.append(sky)
         deps.append(np.where(sky | (not search_sun), 0.0, (f.gbuf["depth"].double() * inv)[..., 0].numpy()))

@@ -36,6 +36,7 @@ import numpy as np
 import torch
 
 from core.bundle import SceneBundle
+from core.camera import Camera
 from core.conventions import camera_ray_directions, project_points
 from core.errors import ConfigError, FormatError, NumericalError, ShapeError
 from core.numerics import require_finite, safe_normalize
@@ -149,13 +150,7 @@ class VolumeSettings:
 class _View:
     frame_id: str
     time: float
-    cam_to_world: torch.Tensor
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-    width: int
-    height: int
+    camera: Camera  # the frame's camera, pose float32 (the Gaussians' dtype)
     image: torch.Tensor  # [H, W, 3]
     nonsky: torch.Tensor | None  # [H, W, 1] float (1 = surface)
     dirs: torch.Tensor  # [H, W, 3] world
@@ -184,8 +179,8 @@ def _views(bundle: SceneBundle, split: str, with_lidar: bool) -> list[_View]:
             px_s, z_s = px[order], z[ok][order]
             _, first = np.unique(px_s, return_index=True)
             lpx, lz = torch.from_numpy(px_s[first]), torch.from_numpy(z_s[first]).float()
-        out.append(_View(f.id, m.times[f.time_index], torch.tensor(f.cam_to_world, dtype=torch.float32),
-                         cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height, img, nonsky, dirs, lpx, lz))
+        camera = Camera.from_bundle(cam, torch.tensor(f.cam_to_world, dtype=torch.float32))
+        out.append(_View(f.id, m.times[f.time_index], camera, img, nonsky, dirs, lpx, lz))
     return out
 
 
@@ -220,8 +215,7 @@ class VolumeModel:
 
     def render(self, v: _View, settings: RasterSettings):
         world, spans = self.compose(v.time)
-        out = rasterize_gaussians(world, v.cam_to_world, v.fx, v.fy, v.cx, v.cy, v.width, v.height,
-                                  settings=settings)
+        out = rasterize_gaussians(world, v.camera, settings=settings)
         rgb = out.color + (1.0 - out.opacity) * self.sky(v.dirs)
         return rgb, out, world, spans
 
@@ -362,13 +356,14 @@ def sky_floaters(g: Gaussians, views: list[_View], min_fraction: float = 0.5) ->
         er[:-1] &= sky[1:]
         er[:, 1:] &= sky[:, :-1]
         er[:, :-1] &= sky[:, 1:]
-        w2c = torch.linalg.inv(v.cam_to_world.double())
+        c = v.camera
+        w2c = torch.linalg.inv(c.cam_to_world.double())
         pc = means @ w2c[:3, :3].T + w2c[:3, 3]
         z = pc[:, 2]
         ok = z > 0.2
-        u = (v.fx * pc[:, 0] / z.clamp_min(1e-6) + v.cx).floor().long()
-        vv = (v.fy * pc[:, 1] / z.clamp_min(1e-6) + v.cy).floor().long()
-        ok &= (u >= 0) & (u < v.width) & (vv >= 0) & (vv < v.height)
+        u = (c.fx * pc[:, 0] / z.clamp_min(1e-6) + c.cx).floor().long()
+        vv = (c.fy * pc[:, 1] / z.clamp_min(1e-6) + c.cy).floor().long()
+        ok &= (u >= 0) & (u < c.width) & (vv >= 0) & (vv < c.height)
         idx = torch.nonzero(ok).reshape(-1)
         n_in[idx] += 1
         n_sky[idx] += er[vv[idx], u[idx]].to(torch.int32)
@@ -435,7 +430,7 @@ def run_volume(bundle: SceneBundle, cfg: VolumeSettings, out_dir: str | Path | N
                    "metallic": cfg.lambda_metallic, "depth": cfg.lambda_prior_depth}
         use_priors = bool(pri) and any(w > 0 for w in weights.values())
         settings = RasterSettings(threads=cfg.threads)
-        extent = scene_extent(torch.stack([v.cam_to_world[:3, 3] for v in train]))
+        extent = scene_extent(torch.stack([v.camera.center for v in train]))
         opts = [GaussianAdam(g, cfg.lr) for g in model.containers()]
         dens = [DensityController(cfg.density, extent, g.num) for g in model.containers()]
         sky_opt = torch.optim.Adam(model.sky.parameters(), lr=cfg.sky_lr)
@@ -484,10 +479,10 @@ def run_volume(bundle: SceneBundle, cfg: VolumeSettings, out_dir: str | Path | N
             sky_opt.step()
             in_window = cfg.densify_from <= it <= cfg.densify_until
             if in_window and world.means.grad is not None:
-                w2c = torch.linalg.inv(v.cam_to_world.double())
+                w2c = torch.linalg.inv(v.camera.cam_to_world.double())
                 for ci, start, cnt in spans:
                     dens[ci].accumulate(world.means.grad[start:start + cnt], world.means.detach()[start:start + cnt],
-                                        w2c, v.fx, v.fy, v.width, v.height)
+                                        w2c, v.camera.fx, v.camera.fy, v.camera.width, v.camera.height)
             if in_window and it % cfg.densify_every == 0:
                 for ci, (o, dc) in enumerate(zip(opts, dens)):
                     others = sum(x.g.num for x in opts) - o.g.num  # one cap for the whole scene

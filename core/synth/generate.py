@@ -101,7 +101,8 @@ def _env(name: str, rot: float, spec=None) -> np.ndarray:
 
 
 def _render_job(job: tuple) -> tuple:
-    from core.synth.mitsuba_backend import PinholeCamera, render_beauty, render_gbuffers
+    from core.camera import Camera
+    from core.synth.mitsuba_backend import render_beauty, render_gbuffers
 
     kind, key, cfg, t, c2w, env_name, env_rot, seed = job
     cam_i = intrinsics(cfg)
@@ -111,9 +112,9 @@ def _render_job(job: tuple) -> tuple:
 
         us, vs, px, py = source_coords(cfg.width, cfg.height, cam_i.fx, k1)
         W, H = cfg.width + 2 * px, cfg.height + 2 * py
-        cam = PinholeCamera(c2w, cam_i.fx, cam_i.fy, W / 2.0, H / 2.0, W, H)
+        cam = Camera.from_intrinsics(c2w, cam_i.fx, cam_i.fy, W / 2.0, H / 2.0, W, H)
     else:
-        cam = PinholeCamera(c2w, cam_i.fx, cam_i.fy, cam_i.cx, cam_i.cy, cfg.width, cfg.height)
+        cam = Camera.from_intrinsics(c2w, cam_i.fx, cam_i.fy, cam_i.cx, cam_i.cy, cfg.width, cfg.height)
     parts = _street(cfg).parts_at(t)
     if kind == "gbuffer":  # distorted: one ray per output pixel, exactly along its lens ray
         film_uv = np.stack([us / cam.width, vs / cam.height], -1) if k1 else None

@@ -9,10 +9,10 @@ project's equirect convention and are handed to Mitsuba's ``envmap`` emitter wit
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import numpy as np
 
+from core.camera import Camera
 from core.conventions import MITSUBA_ENVMAP_TO_WORLD_ROTATION_X_DEG, OPENCV_TO_MITSUBA
 from core.errors import ConfigError, DependencyError, ShapeError
 from core.numerics import require_finite_np
@@ -35,17 +35,10 @@ def mitsuba():
     return _MI
 
 
-@dataclass(frozen=True)
-class PinholeCamera:
-    """OpenCV pinhole camera: ``cam_to_world`` [4, 4], intrinsics in pixels, image size."""
-
-    cam_to_world: np.ndarray
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-    width: int
-    height: int
+def PinholeCamera(cam_to_world, fx: float, fy: float, cx: float, cy: float, width: int, height: int) -> Camera:
+    """Old spelling of :meth:`core.camera.Camera.from_intrinsics` (same arguments), kept only for
+    ``benchmarks/bench_insertion.py``; new code builds a :class:`core.camera.Camera`."""
+    return Camera.from_intrinsics(cam_to_world, fx, fy, cx, cy, width, height)
 
 
 _TEXTURES: dict = {}
@@ -124,14 +117,14 @@ def _envmap(env: np.ndarray) -> dict:
     }
 
 
-def _sensor(cam: PinholeCamera, sampler: dict, pixel_format: str = "rgb") -> dict:
+def _sensor(cam: Camera, sampler: dict, pixel_format: str = "rgb") -> dict:
     mi = mitsuba()
     if abs(cam.fx - cam.fy) > 1e-6 * cam.fx:
         raise ConfigError("camera: Mitsuba ground truth needs square pixels (fx == fy)")
     if abs(cam.cx - cam.width / 2) > 1e-6 or abs(cam.cy - cam.height / 2) > 1e-6:
         raise ConfigError("camera: Mitsuba ground truth needs a centred principal point")
     fov = math.degrees(2.0 * math.atan(cam.width / (2.0 * cam.fx)))
-    to_world = np.asarray(cam.cam_to_world, np.float64) @ OPENCV_TO_MITSUBA
+    to_world = cam.pose_numpy() @ OPENCV_TO_MITSUBA
     return {
         "type": "perspective",
         "fov": fov,
@@ -161,7 +154,7 @@ def _scene(parts: list[Part], integrator: dict, sensor: dict | None, env: np.nda
     return mi.load_dict(d)
 
 
-def render_beauty(parts: list[Part], env: np.ndarray, cam: PinholeCamera, *, spp: int, max_depth: int,
+def render_beauty(parts: list[Part], env: np.ndarray, cam: Camera, *, spp: int, max_depth: int,
                   seed: int = 0) -> np.ndarray:
     """Path-traced HDR radiance [H, W, 3] float32 (environment light only, ``max_depth`` bounces;
     ``max_depth = 2`` is direct illumination). Sky pixels show the environment."""
@@ -175,7 +168,7 @@ def render_beauty(parts: list[Part], env: np.ndarray, cam: PinholeCamera, *, spp
     return np.maximum(img, 0.0)
 
 
-def render_gbuffers(parts: list[Part], cam: PinholeCamera, film_uv: np.ndarray | None = None) -> dict[str, np.ndarray]:
+def render_gbuffers(parts: list[Part], cam: Camera, film_uv: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """Ground-truth G-buffers sampled at pixel centres (one Mitsuba camera ray per pixel).
 
     ``film_uv`` [H', W', 2] (optional): sample these film positions of ``cam`` instead, as
@@ -222,7 +215,7 @@ def render_gbuffers(parts: list[Part], cam: PinholeCamera, film_uv: np.ndarray |
             albedo[r, c] = mat.albedo if mat.texture is None else albedo_texture(mat.texture).eval(si)
             rough[r, c] = 1.0 if mat.model == "lambert" else mat.roughness
             metal[r, c] = 0.0 if mat.model == "lambert" else mat.metallic
-    c2w = np.asarray(cam.cam_to_world, np.float64)
+    c2w = cam.pose_numpy()
     depth = np.where(hit, (p - c2w[:3, 3]) @ c2w[:3, 2], 0.0)
     # orient normals toward the camera (open meshes such as the road quad are one-sided anyway)
     flip = np.sum(n * (p - c2w[:3, 3]), axis=-1) > 0

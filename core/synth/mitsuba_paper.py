@@ -28,9 +28,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from core.camera import Camera
 from core.errors import ConfigError, DependencyError, ShapeError
 from core.numerics import GGX_ALPHA_MIN, require_finite_np
-from core.synth.mitsuba_backend import PinholeCamera, _envmap, _sensor, mitsuba
+from core.synth.mitsuba_backend import _envmap, _sensor, mitsuba
 from core.synth.street import Part
 
 VARIANT = "llvm_ad_rgb"
@@ -239,7 +240,7 @@ def _mesh(mi, part: Part, specular: float):
     return m
 
 
-def render_direct_paper(parts: list[Part], env: np.ndarray, cam: PinholeCamera, *, spp: int, seed: int = 0,
+def render_direct_paper(parts: list[Part], env: np.ndarray, cam: Camera, *, spp: int, seed: int = 0,
                         specular: float = 1.0) -> np.ndarray:
     """Mitsuba's direct illumination (``path``, ``max_depth = 2``) of ``parts`` lit by ``env``
     (``[H, 2H, 3]`` linear HDR, the project's equirect convention) with every part shaded by the

@@ -51,13 +51,14 @@ def test_projection_and_look_at():
 def test_envmap_direction_matches_mitsuba(row, col):
     """A camera aimed (our convention) at the direction of one bright envmap pixel sees it in the
     centre of a Mitsuba render: checks the envmap mapping and the camera conversion at once."""
-    from core.synth.mitsuba_backend import PinholeCamera, render_beauty
+    from core.camera import Camera
+    from core.synth.mitsuba_backend import render_beauty
 
     H, W = 32, 64
     env = np.full((H, W, 3), 0.01, np.float32)
     env[row, col] = 100.0
     d = pixel_to_direction(row, col, H, W)
-    cam = PinholeCamera(look_at([0, 0, 0], d), 20.0, 20.0, 16.0, 16.0, 32, 32)
+    cam = Camera.from_intrinsics(look_at([0, 0, 0], d), 20.0, 20.0, 16.0, 16.0, 32, 32)
     img = render_beauty([], env, cam, spp=16, max_depth=2).sum(-1)
     r, c = np.unravel_index(np.argmax(img), img.shape)
     assert abs(r - 15.5) <= 2.5 and abs(c - 15.5) <= 2.5, (r, c)

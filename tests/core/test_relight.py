@@ -6,11 +6,12 @@ import numpy as np
 import pytest
 import torch
 
+from core.camera import Camera
 from core.errors import ConfigError
 from core.pbr.envmap import EnvironmentMap
 from core.pbr.lights import PointLight
 from core.pbr.oracle import OracleSettings, oracle_gaussians
-from core.pbr.render import Camera, PBRSettings
+from core.pbr.render import PBRSettings
 from core.relight import ObjectEdit, View, apply_edits, render_clip
 from core.scene_graph import RigidNode, SceneGraph
 from core.synth import geometry as geo
@@ -30,7 +31,8 @@ def scene():
     poses[1, 0, 3] = 1.0  # moves 1 m along +x between the two times
     graph = SceneGraph(bg, [RigidNode("car0", "car", car, torch.arange(2), poses)], torch.tensor([0.0, 0.1]))
     c2w = look_at(np.array([-6.0, 0.0, 3.0]), np.array([0.0, 0.0, 0.5]))
-    views = [View(Camera(c2w, 40.0, 40.0, 24.0, 16.0, 48, 32), t, f"f{i}") for i, t in enumerate((0.0, 0.1))]
+    views = [View(Camera.from_intrinsics(c2w, 40.0, 40.0, 24.0, 16.0, 48, 32), t, f"f{i}")
+             for i, t in enumerate((0.0, 0.1))]
     return graph, views
 
 
@@ -91,8 +93,7 @@ def test_shadows_off_renders_exactly_as_without_any_tracer(scene):
     assert r.context.static_tracer is None and r.context.cache is None
     a = r.render(v.camera, time_s=v.time_s)
     g = graph.compose(v.time_s)
-    gb = rasterize_gaussians(g, torch.as_tensor(v.camera.cam_to_world, dtype=g.dtype), v.camera.fx, v.camera.fy,
-                             v.camera.cx, v.camera.cy, v.camera.width, v.camera.height)
+    gb = rasterize_gaussians(g, v.camera)
     b = render_pbr(gb, v.camera, env, settings=PBRSettings(rays_per_pixel=8, threads=1))
     np.testing.assert_allclose(a.hdr.numpy(), b.hdr.numpy(), rtol=1e-5, atol=1e-6)
     shadowed = ClipRenderer(graph, env, PBRSettings(rays_per_pixel=8, threads=1)).render(v.camera, time_s=v.time_s)

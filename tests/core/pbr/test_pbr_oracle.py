@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 
+from core.camera import Camera
 from core.conventions import look_at, project_points
 from core.errors import ConfigError
 from core.pbr.oracle import OracleSettings, budget_scale, oracle_gaussians, predicted_count
@@ -47,7 +48,7 @@ def test_surface_composites_opaque_and_silhouette_on_the_mesh_edge():
     part, c2w = _quad_scene()
     fx, w, h = 200.0, 160, 160
     g = oracle_gaussians([part], c2w[:3, 3][None], fx, OracleSettings(spacing_px=1.5))
-    out = rasterize_gaussians(g, torch.tensor(c2w, dtype=torch.float32), fx, fx, w / 2, h / 2, w, h)
+    out = rasterize_gaussians(g, Camera.from_intrinsics(torch.tensor(c2w, dtype=torch.float32), fx, fx, w / 2, h / 2, w, h))
     o = out.opacity[..., 0].numpy()
     uv, _ = project_points(np.array([[-1, 0, 0], [1, 0, 2.0]]), c2w, fx, fx, w / 2, h / 2)
     c0, c1 = int(round(uv[0, 0])), int(round(uv[1, 0]))  # true edges at pixel borders 60 and 100
@@ -65,7 +66,7 @@ def test_edge_refine_sharpens_the_silhouette_and_keeps_the_surface_opaque():
         m = g.means.double()
         assert float(m[:, 1].abs().max()) < 1e-6  # on the plane y = 0
         assert float(m[:, 0].abs().max()) < 1.0 and float(m[:, 2].min()) > 0.0 and float(m[:, 2].max()) < 2.0
-        out = rasterize_gaussians(g, torch.tensor(c2w, dtype=torch.float32), fx, fx, w / 2, h / 2, w, h)
+        out = rasterize_gaussians(g, Camera.from_intrinsics(torch.tensor(c2w, dtype=torch.float32), fx, fx, w / 2, h / 2, w, h))
         o = out.opacity[..., 0].numpy()
         assert o[68:92, 68:92].min() > 0.99
         row = o[h // 2].astype(np.float64)

@@ -16,7 +16,8 @@ from core.gaussians import Gaussians
 from core.pbr import EnvironmentMap, GaussianTracer
 from core.pbr.lights import PointLight, SpotLight, lights_to_world
 from core.pbr.oracle import OracleSettings, oracle_gaussians
-from core.pbr.render import (Camera, ClipRenderer, PBRSettings, render_pbr, sample_pixels, shading_inputs, tonemap,
+from core.camera import Camera
+from core.pbr.render import (ClipRenderer, PBRSettings, render_pbr, sample_pixels, shading_inputs, tonemap,
                              write_clip_mp4, write_frame_exr)
 from core.raster import RasterSettings, rasterize_gaussians
 from core.synth import geometry as geo
@@ -29,8 +30,9 @@ CITY = "data/hdri/city.exr"
 def _scene(material=("m", (0.6, 0.5, 0.4), 0.5, 0.0)):
     ground = Part("ground", *geo.quad([(-6, -6, 0), (6, -6, 0), (6, 6, 0), (-6, 6, 0)]), Material(*material))
     box = Part("box", *geo.box((1.0, 0.0, 0.5), (1.0, 1.0, 1.0)), Material("b", (0.2, 0.3, 0.8), 0.3, 1.0))
-    cam = Camera(look_at(np.array([-4.0, -1.0, 2.5]), np.array([1.0, 0.0, 0.3])), 40.0, 40.0, W / 2, H / 2, W, H)
-    g = oracle_gaussians([ground, box], cam.cam_to_world[:3, 3][None], cam.fx,
+    cam = Camera.from_intrinsics(look_at(np.array([-4.0, -1.0, 2.5]), np.array([1.0, 0.0, 0.3])), 40.0, 40.0, W / 2,
+                                 H / 2, W, H)
+    g = oracle_gaussians([ground, box], cam.pose_numpy()[:3, 3][None], cam.fx,
                          OracleSettings(spacing_px=2.0, max_spacing=0.4))
     return g, cam
 
@@ -38,8 +40,7 @@ def _scene(material=("m", (0.6, 0.5, 0.4), 0.5, 0.0)):
 @pytest.fixture(scope="module")
 def scene():
     g, cam = _scene()
-    out = rasterize_gaussians(g, torch.as_tensor(cam.cam_to_world, dtype=torch.float32), cam.fx, cam.fy, cam.cx,
-                              cam.cy, W, H, settings=RasterSettings(threads=1))
+    out = rasterize_gaussians(g, cam, settings=RasterSettings(threads=1))
     tr = GaussianTracer.from_gaussians(g, PBRSettings().trace)
     return g, cam, out, tr
 
@@ -141,10 +142,10 @@ def test_white_furnace_through_the_whole_pass():
     """White Lambert (specular 0) Gaussians under a constant environment of 1: C = 1 within 1%."""
     ground = Part("g", *geo.quad([(-3, -3, 0), (3, -3, 0), (3, 3, 0), (-3, 3, 0)]),
                   Material("w", (1.0, 1.0, 1.0), 1.0, 0.0, "lambert"))
-    cam = Camera(look_at(np.array([0.0, -0.5, 3.0]), np.array([0.0, 0.0, 0.0])), 30.0, 30.0, W / 2, H / 2, W, H)
-    g = oracle_gaussians([ground], cam.cam_to_world[:3, 3][None], cam.fx, OracleSettings(spacing_px=2.0))
-    out = rasterize_gaussians(g, torch.as_tensor(cam.cam_to_world, dtype=torch.float32), cam.fx, cam.fy, cam.cx,
-                              cam.cy, W, H)
+    cam = Camera.from_intrinsics(look_at(np.array([0.0, -0.5, 3.0]), np.array([0.0, 0.0, 0.0])), 30.0, 30.0, W / 2,
+                                 H / 2, W, H)
+    g = oracle_gaussians([ground], cam.pose_numpy()[:3, 3][None], cam.fx, OracleSettings(spacing_px=2.0))
+    out = rasterize_gaussians(g, cam)
     env = EnvironmentMap.constant(1.0, 16, 32)
     for backend, sampling in (("native", "env"), ("native", "mis"), ("torch", "mis")):
         res = render_pbr(out, cam, env, settings=PBRSettings(rays_per_pixel=256, specular=0.0, sampling=sampling,
@@ -156,8 +157,8 @@ def test_white_furnace_through_the_whole_pass():
 def _gbuf(normal, wo_dir=(0.0, 0.0, -1.0), rough=0.5, metal=0.0, albedo=0.5, n=4):
     """A hand-made 1 x n G-buffer seen by a camera at the origin looking down -z... built so the
     camera ray of every pixel is ~``wo_dir``; normals as given (may be zero or face away)."""
-    cam = Camera(look_at(np.array([0.0, 0.0, 2.0]), np.array([0.0, 0.0, 0.0]), up=(0.0, 1.0, 0.0)), 1e4, 1e4,
-                 n / 2, 0.5, n, 1)
+    cam = Camera.from_intrinsics(look_at(np.array([0.0, 0.0, 2.0]), np.array([0.0, 0.0, 0.0]), up=(0.0, 1.0, 0.0)),
+                                 1e4, 1e4, n / 2, 0.5, n, 1)
     t = lambda x, c: torch.as_tensor(np.broadcast_to(np.asarray(x, np.float32), (1, n, c)).copy())  # noqa: E731
     gb = {"opacity": t(1.0, 1), "depth": t(2.0, 1), "normal": t(normal, 3), "albedo": t(albedo, 3),
           "roughness": t(rough, 1), "metallic": t(metal, 1)}
@@ -241,7 +242,7 @@ def test_clip_renderer_static_reuse_and_moving_node_lights():
     g, cam = _scene()
     car = oracle_gaussians([Part("c", *geo.box((0.0, 0.0, 0.0), (0.8, 0.6, 0.5)), Material("c", (0.8, 0.1, 0.1), 0.3,
                                                                                           0.0))],
-                           cam.cam_to_world[:3, 3][None], cam.fx, OracleSettings(spacing_px=3.0))
+                           cam.pose_numpy()[:3, 3][None], cam.fx, OracleSettings(spacing_px=3.0))
     poses = torch.eye(4, dtype=torch.float64).repeat(3, 1, 1)
     poses[:, 0, 3] = torch.tensor([-1.0, -0.5, 0.0])
     poses[:, 2, 3] = 0.25

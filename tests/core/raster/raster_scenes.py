@@ -28,7 +28,8 @@ def random_scene(n: int, seed: int = 0, dtype=torch.float64, spread: float = 1.0
 
 
 def camera(width: int, height: int, dtype=torch.float64, tilted: bool = True):
-    """(cam_to_world, fx, fy, cx, cy, width, height): a slightly rotated, off-centre camera."""
+    """(cam_to_world, fx, fy, cx, cy, width, height), the arguments of
+    :meth:`core.camera.Camera.from_intrinsics`: a slightly rotated, off-centre camera."""
     if tilted:
         c2w = torch.tensor(look_at(np.array([0.15, -0.1, -0.2]), np.array([0.1, 0.05, 4.0]),
                                    np.array([0.05, -1.0, 0.0])), dtype=dtype)

@@ -6,6 +6,7 @@ import pytest
 import torch
 from raster_scenes import NAMES, camera, random_scene
 
+from core.camera import Camera
 from core.raster import RasterSettings, rasterize
 from core.raster.reference import reference_rasterize
 
@@ -19,7 +20,7 @@ def _grads(fn, scene, c2w, bg, cam_rest, weights, settings=None):
     leaves = [t.detach().clone().requires_grad_() for t in scene]
     c2w = c2w.detach().clone().requires_grad_()
     bg = bg.detach().clone().requires_grad_()
-    out = fn(*leaves, c2w, *cam_rest, background=bg, settings=settings)
+    out = fn(*leaves, Camera.from_intrinsics(c2w, *cam_rest), background=bg, settings=settings)
     loss = _loss(out, weights)
     return torch.autograd.grad(loss, leaves + [c2w, bg])
 
@@ -80,7 +81,7 @@ def test_gradcheck_finite_differences():
                                                                     bg.clone().requires_grad_()]
 
     def fn(*args):
-        out = rasterize(*args[:9], args[9], *rest, background=args[10])
+        out = rasterize(*args[:9], Camera.from_intrinsics(args[9], *rest), background=args[10])
         return out.packed
 
     assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-5, rtol=1e-4)
@@ -110,7 +111,7 @@ def test_pose_gradient_through_scene_graph_composition():
         rot = torch.stack([torch.stack([ca, -sa, zero]), torch.stack([sa, ca, zero]), torch.stack([zero, zero, one])])
         means = scene[0] @ rot.T + s
         normals = scene[5] @ rot.T
-        out = fn(means, *scene[1:5], normals, *scene[6:], c2w, *rest)
+        out = fn(means, *scene[1:5], normals, *scene[6:], Camera.from_intrinsics(c2w, *rest))
         get = out["depth"] if isinstance(out, dict) else out.depth
         return get.sum()
 

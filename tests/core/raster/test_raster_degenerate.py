@@ -6,6 +6,7 @@ import pytest
 import torch
 from raster_scenes import CHANNELS, NAMES, camera, random_scene
 
+from core.camera import Camera
 from core.raster import RasterSettings, rasterize
 from core.raster.reference import reference_rasterize
 
@@ -13,7 +14,7 @@ from core.raster.reference import reference_rasterize
 def _render_and_grad(scene, cam, dtype=torch.float64, settings=None, bg=None):
     leaves = [t.to(dtype).detach().clone().requires_grad_() for t in scene]
     c2w = cam[0].to(dtype).clone().requires_grad_()
-    out = rasterize(*leaves, c2w, *cam[1:], background=bg, settings=settings)
+    out = rasterize(*leaves, Camera.from_intrinsics(c2w, *cam[1:]), background=bg, settings=settings)
     loss = sum(getattr(out, k).sum() * (i + 1) for i, k in enumerate(CHANNELS))
     grads = torch.autograd.grad(loss, leaves + [c2w])
     for k in CHANNELS:
@@ -77,7 +78,7 @@ def test_degenerate_inputs_are_finite(variant, dtype):
     if dtype == torch.float64 and variant not in ("huge_scale", "one_huge_axis"):
         leaves = [t.detach().clone().requires_grad_() for t in scene]
         c2w = cam[0].clone().requires_grad_()
-        ref = reference_rasterize(*leaves, c2w, *cam[1:])
+        ref = reference_rasterize(*leaves, Camera.from_intrinsics(c2w, *cam[1:]))
         for k in CHANNELS:
             torch.testing.assert_close(getattr(out, k).detach(), ref[k].detach(), rtol=1e-5, atol=1e-8)
         loss = sum(ref[k].sum() * (i + 1) for i, k in enumerate(CHANNELS))
@@ -95,7 +96,7 @@ def test_gaussian_covering_the_whole_image():
     out, _ = _render_and_grad(scene, cam)
     op = out.opacity.detach()
     assert float(op.min()) > 0.79 and float(op.max()) <= 0.8
-    torch.testing.assert_close(out.opacity, reference_rasterize(*scene, *cam)["opacity"], rtol=1e-9, atol=1e-12)
+    torch.testing.assert_close(out.opacity, reference_rasterize(*scene, Camera.from_intrinsics(*cam))["opacity"], rtol=1e-9, atol=1e-12)
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
@@ -115,7 +116,7 @@ def test_one_by_one_image():
     cam = camera(1, 1)
     out, _ = _render_and_grad(scene, cam)
     assert out.color.shape == (1, 1, 3)
-    ref = reference_rasterize(*scene, *cam)
+    ref = reference_rasterize(*scene, Camera.from_intrinsics(*cam))
     torch.testing.assert_close(out.color, ref["color"], rtol=1e-6, atol=1e-9)
 
 

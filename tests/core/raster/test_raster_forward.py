@@ -6,6 +6,7 @@ import pytest
 import torch
 from raster_scenes import CHANNELS, camera, random_scene
 
+from core.camera import Camera
 from core.raster import RasterSettings, rasterize
 from core.raster.reference import reference_rasterize
 
@@ -25,10 +26,10 @@ def _compare(out, ref, rtol, atol):
 )
 def test_forward_float64_matches_reference(n, width, height, seed, tilted):
     scene = random_scene(n, seed)
-    cam = camera(width, height, tilted=tilted)
+    cam = Camera.from_intrinsics(*camera(width, height, tilted=tilted))
     bg = torch.tensor([0.2, 0.5, 0.9], dtype=torch.float64)
-    out = rasterize(*scene, *cam, background=bg)
-    ref = reference_rasterize(*scene, *cam, background=bg)
+    out = rasterize(*scene, cam, background=bg)
+    ref = reference_rasterize(*scene, cam, background=bg)
     assert out.opacity.max() > 0.3  # the scene is visible
     _compare(out, ref, rtol=1e-5, atol=1e-9)
     # and in fact to rounding
@@ -37,9 +38,9 @@ def test_forward_float64_matches_reference(n, width, height, seed, tilted):
 
 def test_forward_float32_close_to_float64_reference():
     scene = random_scene(200, 7)
-    cam = camera(61, 45)
-    ref = reference_rasterize(*scene, *cam)
-    out32 = rasterize(*[t.float() for t in scene], cam[0].float(), *cam[1:])
+    cam = Camera.from_intrinsics(*camera(61, 45))
+    ref = reference_rasterize(*scene, cam)
+    out32 = rasterize(*[t.float() for t in scene], cam.to(torch.float32))
     assert out32.color.dtype == torch.float32
     _compare(out32, ref, rtol=2e-3, atol=2e-4)
 
@@ -52,18 +53,18 @@ def test_forward_float32_close_to_float64_reference():
 )
 def test_settings_follow_reference(settings):
     scene = random_scene(120, 11, opacity=(0.3, 0.99))
-    cam = camera(40, 33)
-    out = rasterize(*scene, *cam, settings=settings)
-    ref = reference_rasterize(*scene, *cam, settings=settings)
+    cam = Camera.from_intrinsics(*camera(40, 33))
+    out = rasterize(*scene, cam, settings=settings)
+    ref = reference_rasterize(*scene, cam, settings=settings)
     _compare(out, ref, rtol=1e-5, atol=1e-9)
 
 
 def test_early_stop_and_dense_overlap():
     # Many opaque Gaussians on top of each other: most pixels stop early.
     scene = random_scene(400, 12, spread=0.3, scale=(0.2, 0.6), opacity=(0.5, 0.95))
-    cam = camera(48, 40)
-    out = rasterize(*scene, *cam, settings=RasterSettings(collect_stats=True))
-    ref = reference_rasterize(*scene, *cam)
+    cam = Camera.from_intrinsics(*camera(48, 40))
+    out = rasterize(*scene, cam, settings=RasterSettings(collect_stats=True))
+    ref = reference_rasterize(*scene, cam)
     _compare(out, ref, rtol=1e-5, atol=1e-9)
     assert float(out.transmittance.min()) >= 1e-4 * (1 - 1e-9)
     evaluated, contributed = out.stats[..., 0], out.stats[..., 1]
@@ -73,9 +74,9 @@ def test_early_stop_and_dense_overlap():
 
 def test_threads_are_deterministic():
     scene = [t.float() for t in random_scene(500, 13)]
-    cam = (camera(80, 64)[0].float(),) + camera(80, 64)[1:]
-    a = rasterize(*scene, *cam, settings=RasterSettings(threads=1))
-    b = rasterize(*scene, *cam, settings=RasterSettings(threads=2))
+    cam = Camera.from_intrinsics(camera(80, 64)[0].float(), *camera(80, 64)[1:])
+    a = rasterize(*scene, cam, settings=RasterSettings(threads=1))
+    b = rasterize(*scene, cam, settings=RasterSettings(threads=2))
     assert torch.equal(a.packed, b.packed)
 
 
@@ -83,8 +84,8 @@ def test_culling_counts():
     scene = random_scene(50, 14)
     scene[0][:10, 2] = -1.0  # behind the camera
     scene[0][10:20, 0] = 100.0  # far off to the side
-    cam = camera(32, 32, tilted=False)
-    out = rasterize(*scene, *cam)
+    cam = Camera.from_intrinsics(*camera(32, 32, tilted=False))
+    out = rasterize(*scene, cam)
     assert out.num_visible <= 30
     assert out.num_tile_pairs >= out.num_visible
 
@@ -96,9 +97,9 @@ def test_rasterize_gaussians_container():
     g = Gaussians.from_activated(*scene)
     from core.raster import rasterize_gaussians
 
-    cam = camera(30, 20)
-    out = rasterize_gaussians(g, *cam)
-    ref = reference_rasterize(*scene, *cam)
+    cam = Camera.from_intrinsics(*camera(30, 20))
+    out = rasterize_gaussians(g, cam)
+    ref = reference_rasterize(*scene, cam)
     _compare(out, ref, rtol=1e-5, atol=1e-8)
 
 
@@ -111,9 +112,9 @@ def test_random_scenes_property():
            tilted=st.booleans(), opac_hi=st.floats(0.05, 1.0))
     def check(n, width, height, seed, tilted, opac_hi):
         scene = random_scene(n, seed, opacity=(0.0, opac_hi))
-        cam = camera(width, height, tilted=tilted)
-        out = rasterize(*scene, *cam)
-        ref = reference_rasterize(*scene, *cam)
+        cam = Camera.from_intrinsics(*camera(width, height, tilted=tilted))
+        out = rasterize(*scene, cam)
+        ref = reference_rasterize(*scene, cam)
         _compare(out, ref, rtol=1e-5, atol=1e-9)
 
     check()

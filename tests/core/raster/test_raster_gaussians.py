@@ -8,6 +8,7 @@ import pytest
 import torch
 from raster_scenes import random_scene
 
+from core.camera import Camera
 from core.errors import FormatError, NumericalError, ShapeError
 from core.gaussians import FORMAT_VERSION, Gaussians
 
@@ -146,7 +147,7 @@ def test_render_through_container_gives_parameter_gradients():
     from raster_scenes import camera
 
     g = _make(30, 4).requires_grad_()
-    out = rasterize_gaussians(g, *camera(24, 18))
+    out = rasterize_gaussians(g, Camera.from_intrinsics(*camera(24, 18)))
     loss = sum(v.sum() for v in out.as_dict().values())
     grads = torch.autograd.grad(loss, g.parameters())
     for name, gr in zip(g.tensors(), grads):

@@ -8,6 +8,7 @@ import pytest
 import torch
 from raster_scenes import NAMES, camera, random_scene
 
+from core.camera import Camera
 from core.errors import ConfigError, NumericalError, ShapeError
 from core.raster import RasterSettings, rasterize
 
@@ -15,7 +16,7 @@ from core.raster import RasterSettings, rasterize
 def _call(scene=None, cam=None, **kw):
     scene = scene if scene is not None else random_scene(5, 0)
     cam = list(cam if cam is not None else camera(8, 8))
-    return rasterize(*scene, *cam, **kw)
+    return rasterize(*scene, Camera.from_intrinsics(*cam), **kw)
 
 
 @pytest.mark.parametrize("i,bad_shape", [(0, (5, 2)), (1, (5, 3)), (2, (5,)), (3, (5, 2)), (4, (5, 4)),

@@ -11,7 +11,8 @@ from core.conventions import camera_ray_directions, look_at
 from core.errors import ConfigError
 from core.pbr.envmap import EnvironmentMap
 from core.pbr.oracle import OracleSettings, oracle_gaussians
-from core.pbr.render import Camera, ClipRenderer, PBRSettings
+from core.camera import Camera
+from core.pbr.render import ClipRenderer, PBRSettings
 from core.relight import View
 from core.render.objects import LAMP_CLEARANCE_M, object_box, vehicle_lights
 from core.render.scenario import Scenario, render_scenario
@@ -43,7 +44,8 @@ def street():
     graph = SceneGraph(bg, [RigidNode("car0", "car", car, torch.arange(t), moving, size=SIZE),
                             RigidNode("car1", "car", car.clone(), torch.arange(t), parked, size=SIZE)], times)
     c2w = look_at(eye, np.array([12.0, -1.0, 0.0]))
-    views = [View(Camera(c2w, 40.0, 40.0, 40.0, 30.0, 80, 60), float(x), f"f{i}") for i, x in enumerate(times)]
+    views = [View(Camera.from_intrinsics(c2w, 40.0, 40.0, 40.0, 30.0, 80, 60), float(x), f"f{i}")
+             for i, x in enumerate(times)]
     return graph, views
 
 

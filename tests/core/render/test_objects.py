@@ -13,7 +13,8 @@ from core.errors import ConfigError, FormatError
 from core.gaussians import Gaussians
 from core.pbr.envmap import EnvironmentMap
 from core.pbr.oracle import OracleSettings, oracle_gaussians
-from core.pbr.render import Camera, ClipRenderer, PBRSettings
+from core.camera import Camera
+from core.pbr.render import ClipRenderer, PBRSettings
 from core.relight import ObjectEdit, View, apply_edits
 from core.render.objects import crop_to_box, describe_objects, export_asset, load_asset, retime_poses
 from core.scene_graph import RigidNode, SceneGraph
@@ -43,7 +44,7 @@ def _graph(with_floaters: bool = True, road_y: float = 8.0):
     graph = SceneGraph(bg, [RigidNode("car0", "car", car, torch.arange(t), moving, size=SIZE)],
                        torch.arange(t, dtype=torch.float64) * 0.5)
     c2w = look_at(eye, np.array([12.0, -1.0, 0.0]))
-    views = [View(Camera(c2w, 40.0, 40.0, 40.0, 30.0, 80, 60), float(x), f"f{i}") for i, x in
+    views = [View(Camera.from_intrinsics(c2w, 40.0, 40.0, 40.0, 30.0, 80, 60), float(x), f"f{i}") for i, x in
              enumerate(graph.times.tolist())]
     return graph, views
 
@@ -165,10 +166,10 @@ def test_a_filled_object_casts_a_solid_shadow_where_its_half_transparent_shell_d
         from core.conventions import camera_ray_directions
 
         cam = v.camera
-        d = camera_ray_directions(cam.cam_to_world, cam.fx, cam.fy, cam.cx, cam.cy, cam.width,
-                                  cam.height).reshape(-1, 3)
+        c2w = cam.pose_numpy()
+        d = camera_ray_directions(c2w, cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height).reshape(-1, 3)
         z = res.gbuffers["depth"].numpy().reshape(-1)
-        pts = cam.cam_to_world[:3, 3] + d * (z / (d @ cam.cam_to_world[:3, 2]))[:, None]
+        pts = c2w[:3, 3] + d * (z / (d @ c2w[:3, 2]))[:, None]
         centre = g.node_poses(v.time_s)["car0"].numpy()[:3, 3]
         road = (z > 0) & (pts[:, 2] < 0.3) & ~(np.abs(pts - centre) <= np.asarray(SIZE) / 2 + 0.3).all(1)
         # the umbra of the body: the box above the 0.3 m under the car, 0.15 m in from its sides
@@ -216,14 +217,14 @@ def test_describe_objects_and_captured_camera_paths():
     assert [v.name for v in cap] == [f"{i:05d}" for i in range(len(b.frames("train")))]
     moved = views_from_capture(b, lateral_shift_m=3.5, height_shift_m=1.0, start_s=0.2, stop_s=0.5, fps=20)
     assert [round(v.time_s, 6) for v in moved] == [0.2, 0.25, 0.3, 0.35, 0.4, 0.45, 0.5]
-    orig = {round(v.time_s, 6): v.camera.cam_to_world for v in cap}
+    orig = {round(v.time_s, 6): v.camera.pose_numpy() for v in cap}
     for v in moved:
         if round(v.time_s, 6) in orig:  # a captured time: the pose shifted 3.5 m left and 1 m up
-            d = v.camera.cam_to_world[:3, 3] - orig[round(v.time_s, 6)][:3, 3]
+            d = v.camera.pose_numpy()[:3, 3] - orig[round(v.time_s, 6)][:3, 3]
             np.testing.assert_allclose(d, [0.0, 3.5, 1.0], atol=1e-9)
-            np.testing.assert_allclose(v.camera.cam_to_world[:3, :3], orig[round(v.time_s, 6)][:3, :3], atol=1e-9)
+            np.testing.assert_allclose(v.camera.pose_numpy()[:3, :3], orig[round(v.time_s, 6)][:3, :3], atol=1e-9)
     mid = next(v for v in moved if abs(v.time_s - 0.25) < 1e-9)  # interpolated between 0.2 and 0.3
-    np.testing.assert_allclose(mid.camera.cam_to_world[0, 3], (orig[0.2][0, 3] + orig[0.3][0, 3]) / 2, atol=1e-9)
+    np.testing.assert_allclose(mid.camera.pose_numpy()[0, 3], (orig[0.2][0, 3] + orig[0.3][0, 3]) / 2, atol=1e-9)
     for kw, field in (({"start_s": 5.0}, "start_s"), ({"camera": "rear"}, "camera"), ({"split": "x"}, "split"),
                       ({"fps": 0.0}, "fps"), ({"lateral_shift_m": float("nan")}, "lateral_shift_m")):
         with pytest.raises(ConfigError, match=field):

@@ -56,10 +56,10 @@ def test_defaults_follow_the_measurement():
 
 
 def test_the_skip_fields_are_checked():
-    from core.pbr.render import Camera
+    from core.camera import Camera
     from core.relight import View
 
-    v = (View(Camera(np.eye(4), 30.0, 30.0, 16.0, 12.0, 32, 24), 0.0, "v0"),)
+    v = (View(Camera.from_intrinsics(np.eye(4), 30.0, 30.0, 16.0, 12.0, 32, 24), 0.0, "v0"),)
     for name in ("adaptive_rays", "reuse_visibility_across_requests"):
         with pytest.raises(ConfigError, match=name):
             _scenario(v, **{name: 1})

@@ -6,13 +6,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from core.camera import Camera
 from core.errors import ConfigError
-from core.pbr.render import Camera
 from core.relight import View
 from core.render.scenario import FALLBACK_SKY_RADIANCE, LightSpec, Scenario, scene_sky
 from core.stages.chain import RunDir
 
-VIEW = View(Camera(np.eye(4), 30.0, 30.0, 16.0, 12.0, 32, 24), 0.0, "v0")
+VIEW = View(Camera.from_intrinsics(np.eye(4), 30.0, 30.0, 16.0, 12.0, 32, 24), 0.0, "v0")
 ENV = np.ones((8, 16, 3), np.float32)
 
 

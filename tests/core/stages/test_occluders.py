@@ -8,11 +8,12 @@ import numpy as np
 import pytest
 import torch
 
+from core.camera import Camera
 from core.conventions import look_at
 from core.errors import ConfigError
 from core.gaussians import Gaussians
 from core.pbr.envmap import EnvironmentMap
-from core.pbr.render import Camera, ClipRenderer, PBRSettings
+from core.pbr.render import ClipRenderer, PBRSettings
 from core.scene_graph import SceneGraph
 from core.stages.occluders import OccluderSettings, complete_occluders, facade_columns
 
@@ -46,7 +47,7 @@ def _wall(x0=0.0, x1=10.0, y=5.0, z1=4.0, step=0.25) -> Gaussians:
 def _view(eye, target, w=32, h=24, fov_deg=60.0, sky=False, depth=0.0):
     c2w = look_at(np.asarray(eye, float), np.asarray(target, float))
     f = w / 2 / math.tan(math.radians(fov_deg) / 2)
-    return (np.asarray(c2w, np.float64), f, f, w / 2, h / 2, w, h, np.full((h, w), sky), np.full((h, w), depth))
+    return (Camera.from_intrinsics(c2w, f, f, w / 2, h / 2, w, h), np.full((h, w), sky), np.full((h, w), depth))
 
 
 def test_an_unseen_wall_top_is_extended_to_the_cap_with_wall_disks():
@@ -108,7 +109,8 @@ def test_scene_graph_keeps_occluders_for_shadows_only(tmp_path):
     back = SceneGraph.load(tmp_path / "g.pt")
     assert back.occluders is not None and torch.equal(back.occluders.means, roof.means)
     # the PBR pass: the roof shadows the ground under a uniform sky; it is never drawn
-    cam = Camera(look_at(np.array([-1.0, 0.0, 1.5]), np.array([4.0, 0.0, 0.0])), 20.0, 20.0, 16.0, 12.0, 32, 24)
+    cam = Camera.from_intrinsics(look_at(np.array([-1.0, 0.0, 1.5]), np.array([4.0, 0.0, 0.0])), 20.0, 20.0, 16.0, 12.0,
+                                 32, 24)
     env = EnvironmentMap.constant(1.0, 16, 32)
     s = PBRSettings(rays_per_pixel=16, threads=1)
     with_roof = ClipRenderer(back, env, s).render(cam)

@@ -22,6 +22,7 @@ import torch
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from core.camera import Camera
 from core.errors import ConfigError, CoreError, NumericalError
 from core.gaussians import Gaussians
 from core.metrics import ssim
@@ -222,7 +223,7 @@ def test_ssim_and_l1_are_finite_for_black_and_saturated_frames(data):
 # ---------------------------------------------------------------------------------------------
 
 def _volume_loss(g: Gaussians, image: torch.Tensor, nonsky: torch.Tensor, px, z) -> tuple[torch.Tensor, object]:
-    out = rasterize_gaussians(g, torch.eye(4), 10.0, 10.0, W / 2, H / 2, W, H,
+    out = rasterize_gaussians(g, Camera.from_intrinsics(torch.eye(4), 10.0, 10.0, W / 2, H / 2, W, H),
                               settings=RasterSettings(threads=1))
     sky = torch.tensor([0.6, 0.7, 0.8])
     rgb = out.color + (1.0 - out.opacity) * sky
@@ -316,7 +317,6 @@ def test_environment_map_rejects_bad_radiance_or_stays_finite(kind, log_space):
 @pytest.fixture(scope="module")
 def pbr_scene():
     from core.conventions import look_at
-    from core.pbr.render import Camera
 
     n = 40
     g = torch.Generator().manual_seed(3)
@@ -327,9 +327,9 @@ def pbr_scene():
     normals = torch.tensor([[0.0, 0, 1]]).repeat(n, 1)
     gs = Gaussians.from_activated(means, quats, scales, torch.ones(n), torch.rand(n, 3, generator=g), normals,
                                   torch.rand(n, 3, generator=g), torch.rand(n, generator=g), torch.zeros(n))
-    cam = Camera(look_at(np.array([-3.0, 0.0, 2.0]), np.array([0.0, 0.0, 0.0])), 12.0, 12.0, W / 2, H / 2, W, H)
-    out = rasterize_gaussians(gs, torch.as_tensor(cam.cam_to_world, dtype=torch.float32), cam.fx, cam.fy, cam.cx,
-                              cam.cy, W, H, settings=RasterSettings(threads=1))
+    cam = Camera.from_intrinsics(look_at(np.array([-3.0, 0.0, 2.0]), np.array([0.0, 0.0, 0.0])), 12.0, 12.0, W / 2,
+                                 H / 2, W, H)
+    out = rasterize_gaussians(gs, cam, settings=RasterSettings(threads=1))
     return gs, cam, out
 
 
@@ -365,14 +365,14 @@ def test_pbr_photometric_loss_with_a_bright_sun_has_finite_gradients(pbr_scene, 
 def _bundle(root, *, frames=3, lidar=True, image=None, sky=True, objects=(), test=True):
     """A tiny bundle (no renderer): a ground plane of LiDAR points under a forward camera;
     ``image``: 'black', 'white' or None (random texture)."""
-    from core.bundle import BundleWriter, Camera
+    from core.bundle import BundleWriter, Camera as CameraRecord
     from core.conventions import look_at
 
     rng = np.random.default_rng(0)
     w, h = 32, 24
     wr = BundleWriter(root, "stress", overwrite=True, source={"kind": "test"})
     wr.set_times([0.1 * t for t in range(frames + 1)])
-    wr.add_camera(Camera("front", w, h, 24.0, 24.0, w / 2, h / 2))
+    wr.add_camera(CameraRecord("front", w, h, 24.0, 24.0, w / 2, h / 2))
     for t in range(frames + 1):  # the last frame is the test frame
         c2w = look_at([t * 0.5, 0.0, 1.5], [t * 0.5 + 10.0, 0.0, 0.5])
         if image == "black":
@@ -592,13 +592,14 @@ def test_pbr_pass_on_extreme_gbuffers_has_finite_gradients(data):
     under a constant sky plus a sun of up to 1e6."""
     from core.conventions import look_at
     from core.pbr.envmap import EnvironmentMap
-    from core.pbr.render import Camera, PBRSettings, render_pbr
+    from core.pbr.render import PBRSettings, render_pbr
 
     out, leaves = data.draw(raster_like())
     rgb = torch.full((8, 16, 3), data.draw(st.sampled_from([0.0, 0.5])), dtype=torch.float64)
     rgb[1, 3] = data.draw(st.sampled_from([0.0, 1e6]))
     env = EnvironmentMap(rgb, log_space=True, requires_grad=True)
-    cam = Camera(look_at(np.array([0.0, 0.0, 1.5]), np.array([10.0, 0.0, 0.5])), 12.0, 12.0, W / 2, H / 2, W, H)
+    cam = Camera.from_intrinsics(look_at(np.array([0.0, 0.0, 1.5]), np.array([10.0, 0.0, 0.5])), 12.0, 12.0, W / 2,
+                                 H / 2, W, H)
     idx = torch.randperm(H * W, generator=torch.Generator().manual_seed(data.draw(st.integers(0, 99))))[:64]
     res = render_pbr(out.__dict__, cam, env, settings=PBRSettings(backend="torch", rays_per_pixel=4, threads=1),
                      pixels=idx, generator=torch.Generator().manual_seed(0))
@@ -653,13 +654,13 @@ def test_pbr_stage_on_degenerate_gaussians_is_finite_or_named(tmp_path, case):
 def test_volume_stage_on_degenerate_lidar(tmp_path, mode):
     """Sweeps whose points all coincide (zero neighbour distance, no PCA plane), a single point
     per sweep, or returns 1e5-1e6 m away (float32 depths of the LiDAR term)."""
-    from core.bundle import BundleWriter, Camera
+    from core.bundle import BundleWriter, Camera as CameraRecord
     from core.conventions import look_at
 
     rng = np.random.default_rng(0)
     wr = BundleWriter(tmp_path / "b", "lidar", overwrite=True, source={"kind": "test"})
     wr.set_times([0.0, 0.1, 0.2])
-    wr.add_camera(Camera("front", 32, 24, 24.0, 24.0, 16, 12))
+    wr.add_camera(CameraRecord("front", 32, 24, 24.0, 24.0, 16, 12))
     for t in range(3):
         c2w = look_at([t * 0.5, 0.0, 1.5], [t * 0.5 + 10.0, 0.0, 0.5])
         wr.add_frame(f"f{t}", "front", t, c2w, image=rng.integers(0, 255, (24, 32, 3), dtype=np.uint8),

@@ -7,10 +7,11 @@ import math
 import numpy as np
 import pytest
 
+from core.camera import Camera
 from core.conventions import look_at, pixel_to_direction, project_points
 from core.synth import geometry as geo
 from core.synth.generate import load_envmap
-from core.synth.mitsuba_backend import PinholeCamera, render_beauty
+from core.synth.mitsuba_backend import render_beauty
 from core.synth.street import Material, Part
 
 pytestmark = pytest.mark.mitsuba
@@ -37,7 +38,7 @@ def test_road_shadow_falls_away_from_the_sun(rotation_deg):
     road = Part("road", *geo.quad([(-20, -20, 0), (20, -20, 0), (20, 20, 0), (-20, 20, 0)]), ROAD)
     block = Part("block", *geo.box((0, 0, 1.5), (1.0, 1.0, 3.0)), ROAD)
     # camera high above, looking straight down (small tilt so look_at's up vector is defined)
-    cam = PinholeCamera(look_at([0.0, -0.01, 25.0], [0.0, 0.0, 0.0]), 80.0, 80.0, 32.0, 32.0, 64, 64)
+    cam = Camera.from_intrinsics(look_at([0.0, -0.01, 25.0], [0.0, 0.0, 0.0]), 80.0, 80.0, 32.0, 32.0, 64, 64)
     img = render_beauty([road, block], env, cam, spp=32, max_depth=2, seed=1).mean(-1)
     d = 1.3  # metres from the box centre, just outside it
     pts = np.array([-sun_h * d, sun_h * d])  # away from the sun, toward the sun
@@ -61,6 +62,6 @@ def test_white_lambertian_plane_under_unit_environment():
     white = Material("white", (1.0, 1.0, 1.0), 1.0, 0.0, model="lambert")
     plane = Part("plane", *geo.quad([(-50, -50, 0), (50, -50, 0), (50, 50, 0), (-50, 50, 0)]), white)
     env = np.ones((64, 128, 3), np.float32)
-    cam = PinholeCamera(look_at([0.0, -0.01, 2.0], [0.0, 0.0, 0.0]), 40.0, 40.0, 16.0, 16.0, 32, 32)
+    cam = Camera.from_intrinsics(look_at([0.0, -0.01, 2.0], [0.0, 0.0, 0.0]), 40.0, 40.0, 16.0, 16.0, 32, 32)
     img = render_beauty([plane], env, cam, spp=64, max_depth=2, seed=3)
     assert abs(img.mean() - 1.0) < 0.02, img.mean()

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import torch
 
+from core.camera import Camera
 from core.pbr.brdf import cook_torrance
-from core.synth.mitsuba_backend import PinholeCamera
 from core.synth.street import Material, Part
 
 mp = pytest.importorskip("core.synth.mitsuba_paper")
@@ -69,7 +69,7 @@ def test_plugin_white_furnace_render():
     c2w = np.eye(4)
     c2w[:3, :3] = np.array([[1, 0, 0], [0, -1, 0], [0, 0, -1]])  # OpenCV camera looking down -z
     c2w[:3, 3] = [0, 0, 2]
-    cam = PinholeCamera(c2w, 16.0, 16.0, 8.0, 6.0, 16, 12)
+    cam = Camera.from_intrinsics(c2w, 16.0, 16.0, 8.0, 6.0, 16, 12)
     img = mp.render_direct_paper([quad], np.ones((8, 16, 3), np.float32), cam, spp=64, seed=3)
     assert img.shape == (12, 16, 3)
     assert abs(float(img.mean()) - 1.0) < 0.01, img.mean()
@@ -78,7 +78,7 @@ def test_plugin_white_furnace_render():
 def test_bad_input_names_the_argument():
     from core.errors import ConfigError, FormatError, NumericalError, ShapeError
 
-    cam = PinholeCamera(np.eye(4), 16.0, 16.0, 8.0, 6.0, 16, 12)
+    cam = Camera.from_intrinsics(np.eye(4), 16.0, 16.0, 8.0, 6.0, 16, 12)
     with pytest.raises(ConfigError, match="spp"):
         mp.render_direct_paper([], np.ones((8, 16, 3), np.float32), cam, spp=0)
     bad = np.ones((8, 16, 3), np.float32)
@@ -99,7 +99,7 @@ def test_plugin_lambert_render_equals_mitsubas_own_diffuse_bsdf():
                   Material("g", (0.6, 0.55, 0.5), 1.0, 0.0, "lambert")),
              Part("box", *geo.box((0.0, 0.0, 0.5), (1.0, 1.0, 1.0)), Material("b", (0.3, 0.5, 0.7), 1.0, 0.0, "lambert"))]
     c2w = look_at(np.array([-4.0, -3.0, 3.0]), np.array([0.0, 0.0, 0.3]))
-    cam = PinholeCamera(c2w, 30.0, 30.0, 16.0, 12.0, 32, 24)
+    cam = Camera.from_intrinsics(c2w, 30.0, 30.0, 16.0, 12.0, 32, 24)
     env = load_envmap("city")
     ours = mp.render_direct_paper(parts, env, cam, spp=1024, seed=1)
     ref = render_beauty(parts, env, cam, spp=1024, max_depth=2, seed=2)

@@ -346,7 +346,8 @@ def test_facade_albedo_varies_within_one_facade():
     """The albedo G-buffer of one facade, seen head-on, varies spatially (texture, not a flat
     colour) and stays inside the texture's values."""
     from core.conventions import look_at
-    from core.synth.mitsuba_backend import PinholeCamera, render_gbuffers
+    from core.camera import Camera
+    from core.synth.mitsuba_backend import render_gbuffers
 
     spec = replace(split_spec("train", 4), layout="terraced", palette="brick")
     street = make_random_street(spec, ego_positions(profile("tiny")), 60.0, 0.1, 8.0)
@@ -355,7 +356,7 @@ def test_facade_albedo_varies_within_one_facade():
     y_face = -wall.vertices[:, 1].max()  # the facade facing the road, at y = -B
     target = np.array([c[0], -y_face, 2.0])
     eye = target + np.array([0.0, 3.0, 0.0])
-    cam = PinholeCamera(look_at(eye, target), 12.0, 12.0, 12.0, 12.0, 24, 24)
+    cam = Camera.from_intrinsics(look_at(eye, target), 12.0, 12.0, 12.0, 12.0, 24, 24)
     g = render_gbuffers([wall], cam)
     hit = ~g["sky"]
     assert hit.sum() > 300
