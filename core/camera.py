@@ -220,25 +220,10 @@ class Camera:
         v = self.K[..., i, j]
         return v.clone() if self.is_batched else float(v)
 
-    @property
-    def fx(self) -> float | torch.Tensor:
-        """Focal length along x, pixels (a [B] tensor for a batch)."""
-        return self._k(0, 0)
-
-    @property
-    def fy(self) -> float | torch.Tensor:
-        """Focal length along y, pixels (a [B] tensor for a batch)."""
-        return self._k(1, 1)
-
-    @property
-    def cx(self) -> float | torch.Tensor:
-        """Principal point column, pixels (a [B] tensor for a batch)."""
-        return self._k(0, 2)
-
-    @property
-    def cy(self) -> float | torch.Tensor:
-        """Principal point row, pixels (a [B] tensor for a batch)."""
-        return self._k(1, 2)
+    fx = property(lambda self: self._k(0, 0), doc="Focal length along x, pixels (a [B] tensor for a batch).")
+    fy = property(lambda self: self._k(1, 1), doc="Focal length along y, pixels (a [B] tensor for a batch).")
+    cx = property(lambda self: self._k(0, 2), doc="Principal point column, pixels (a [B] tensor for a batch).")
+    cy = property(lambda self: self._k(1, 2), doc="Principal point row, pixels (a [B] tensor for a batch).")
 
     @property
     def center(self) -> torch.Tensor:
@@ -248,6 +233,22 @@ class Camera:
     def pose_numpy(self) -> np.ndarray:
         """``cam_to_world`` as a float64 numpy array [4, 4] (or [B, 4, 4]), detached."""
         return self.cam_to_world.detach().cpu().numpy().astype(np.float64)
+
+    def ray_directions(self) -> np.ndarray:
+        """Unit world directions [H, W, 3] (float64) of the rays through every pixel centre
+        (:func:`core.conventions.camera_ray_directions`); one camera."""
+        from core.conventions import camera_ray_directions
+
+        self._require_single("ray_directions")
+        return camera_ray_directions(self.pose_numpy(), self.fx, self.fy, self.cx, self.cy, self.width, self.height)
+
+    def project(self, points_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(uv [N, 2] pixels, z [N] camera depth, metres) of world points [N, 3], metres; NaN uv
+        behind the camera (:func:`core.conventions.project_points`); one camera."""
+        from core.conventions import project_points
+
+        self._require_single("project")
+        return project_points(points_world, self.pose_numpy(), self.fx, self.fy, self.cx, self.cy)
 
     def to(self, dtype: torch.dtype) -> "Camera":
         """The same camera with ``cam_to_world`` in ``dtype`` (autograd graph kept; ``self``

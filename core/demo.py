@@ -77,15 +77,15 @@ def sheet(graph, sky, bundle, frame, relit_ldr: np.ndarray | None, gt_ldr: np.nd
     """[H', W', 3] in [0, 1]: the frame's input, novel view, albedo, normal, roughness, relit and
     ground truth side by side, each captioned."""
     from core.camera import Camera
-    from core.conventions import camera_ray_directions
     from core.raster import RasterSettings, rasterize_gaussians
 
     c = bundle.camera(frame)
     t = float(bundle.manifest.times[frame.time_index])
     with torch.no_grad():
         g = graph.compose(t).detach()
-        r = rasterize_gaussians(g, Camera.from_bundle(c, frame), settings=RasterSettings(threads=threads))
-        dirs = torch.from_numpy(camera_ray_directions(frame.cam_to_world, c.fx, c.fy, c.cx, c.cy, c.width, c.height))
+        cam = Camera.from_bundle(c, frame)
+        r = rasterize_gaussians(g, cam, settings=RasterSettings(threads=threads))
+        dirs = torch.from_numpy(cam.ray_directions())
         nvs = (r.color + (1 - r.opacity) * sky(dirs.to(g.dtype)).to(r.color.dtype)).numpy()
         inv = (1.0 / r.opacity.clamp_min(OPACITY_EPS)).numpy()
         n = r.normal.numpy()

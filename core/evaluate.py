@@ -113,16 +113,14 @@ def evaluate_run(run_dir: str | Path, bundle=None, settings: EvalSettings | None
                  "frames": [f.id for f in test], "settings": s.__dict__}
     t0 = time.perf_counter()
     # -- intrinsics and novel views -----------------------------------------------------------
-    from core.conventions import camera_ray_directions
-
     intr, nvs = [], []
     with torch.no_grad():
         for f in test:
             c = b.camera(f)
             g = graph.compose(float(times[f.time_index])).detach()
-            r = rasterize_gaussians(g, Camera.from_bundle(c, f), settings=rs)
-            dirs = torch.from_numpy(camera_ray_directions(f.cam_to_world, c.fx, c.fy, c.cx, c.cy, c.width,
-                                                          c.height)).to(g.dtype)
+            cam = Camera.from_bundle(c, f)
+            r = rasterize_gaussians(g, cam, settings=rs)
+            dirs = torch.from_numpy(cam.ray_directions()).to(g.dtype)
             rgb = r.color + (1 - r.opacity) * sky(dirs).to(g.dtype)
             img = b.load_image(f)
             nvs.append(_img_metrics(rgb.float().numpy(), img, s.flip))

@@ -213,8 +213,6 @@ def shading_inputs(gbuf, camera: Camera, sky_opacity: float = 1.0 / 255.0) -> Sh
     """Unproject the G-buffers (a :class:`core.raster.RasterOutput` or a dict with ``opacity``,
     ``depth``, ``normal``, ``albedo``, ``roughness``, ``metallic`` ``[H, W, C]`` accumulated
     sums) into per-pixel shading inputs (see the module docstring)."""
-    from core.conventions import camera_ray_directions
-
     g = gbuf.as_dict() if hasattr(gbuf, "as_dict") else dict(gbuf)
     cam = Camera.of(camera)
     h, w = cam.height, cam.width
@@ -226,10 +224,8 @@ def shading_inputs(gbuf, camera: Camera, sky_opacity: float = 1.0 / 255.0) -> Sh
     dt = g["opacity"].dtype
     o = g["opacity"].reshape(-1, 1).clamp(0.0, 1.0)
     inv = torch.where(o > 0, 1.0 / torch.where(o > 0, o, torch.ones_like(o)), torch.zeros_like(o))
-    pose = cam.pose_numpy()
-    d = torch.from_numpy(camera_ray_directions(pose, cam.fx, cam.fy, cam.cx, cam.cy, w, h)).to(dt)
-    d = d.reshape(-1, 3)
-    c2w = torch.as_tensor(pose, dtype=dt)
+    d = torch.from_numpy(cam.ray_directions()).to(dt).reshape(-1, 3)
+    c2w = torch.as_tensor(cam.pose_numpy(), dtype=dt)
     fwd = c2w[:3, 2]
     z = (g["depth"].reshape(-1, 1) * inv).clamp_min(0.0)
     pts = c2w[:3, 3] + d * (z / (d @ fwd)[:, None])

@@ -37,7 +37,6 @@ import torch
 
 from core.bundle import SceneBundle
 from core.camera import Camera
-from core.conventions import camera_ray_directions, project_points
 from core.errors import ConfigError, FormatError, NumericalError, ShapeError
 from core.numerics import require_finite, safe_normalize
 from core.gaussians import Gaussians
@@ -166,12 +165,12 @@ def _views(bundle: SceneBundle, split: str, with_lidar: bool) -> list[_View]:
         img = torch.from_numpy(bundle.load_image(f))
         sky = bundle.load_sky_mask(f)
         nonsky = None if sky is None else torch.from_numpy(~sky).float()[..., None]
-        dirs = torch.from_numpy(camera_ray_directions(f.cam_to_world, cam.fx, cam.fy, cam.cx, cam.cy,
-                                                      cam.width, cam.height)).float()
+        camera = Camera.from_bundle(cam, f)
+        dirs = torch.from_numpy(camera.ray_directions()).float()
         lpx = lz = None
         if with_lidar and any(s.time_index == f.time_index for s in m.lidar):
             pts = bundle.load_lidar(f.time_index)[:, 3:].astype(np.float64)
-            uv, z = project_points(pts, f.cam_to_world, cam.fx, cam.fy, cam.cx, cam.cy)
+            uv, z = camera.project(pts)
             ok = (z > 0.5) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
             px = uv[ok, 1].astype(np.int64) * cam.width + uv[ok, 0].astype(np.int64)
             # keep the nearest point per pixel (LiDAR sees past thin occluders the camera sees)
@@ -179,8 +178,7 @@ def _views(bundle: SceneBundle, split: str, with_lidar: bool) -> list[_View]:
             px_s, z_s = px[order], z[ok][order]
             _, first = np.unique(px_s, return_index=True)
             lpx, lz = torch.from_numpy(px_s[first]), torch.from_numpy(z_s[first]).float()
-        camera = Camera.from_bundle(cam, torch.tensor(f.cam_to_world, dtype=torch.float32))
-        out.append(_View(f.id, m.times[f.time_index], camera, img, nonsky, dirs, lpx, lz))
+        out.append(_View(f.id, m.times[f.time_index], camera.to(torch.float32), img, nonsky, dirs, lpx, lz))
     return out
 
 

@@ -193,17 +193,24 @@ def test_round_trip_through_a_bundle_on_disk(tmp_path):
     assert cams[0].to_bundle("front", (0.1,)).distortion == (0.1,)
 
 
-def test_equal_to_the_old_loose_arguments_through_the_projection_helpers():
+def test_rays_and_projection_equal_the_old_loose_argument_helpers():
     cam = _cam()
-    np.testing.assert_array_equal(camera_ray_directions(cam.pose_numpy(), cam.fx, cam.fy, cam.cx, cam.cy, cam.width,
-                                                        cam.height),
-                                  camera_ray_directions(C2W, 30.0, 32.0, 16.5, 11.0, 32, 24))
-    pts = np.array([[3.0, 1.0, 1.0], [2.0, 0.5, 1.2]])
-    uv, _ = project_points(pts, cam.pose_numpy(), cam.fx, cam.fy, cam.cx, cam.cy)
+    np.testing.assert_array_equal(cam.ray_directions(), camera_ray_directions(C2W, 30.0, 32.0, 16.5, 11.0, 32, 24))
+    pts = np.array([[3.0, 1.0, 1.0], [2.0, 0.5, 1.2], [-5.0, -8.0, 1.0]])
+    uv, z = cam.project(pts)
+    uv_old, z_old = project_points(pts, C2W, 30.0, 32.0, 16.5, 11.0)
+    np.testing.assert_array_equal(uv, uv_old)
+    np.testing.assert_array_equal(z, z_old)
     # K applied by hand to the camera-frame points gives the same pixels
-    pc = (pts - C2W[:3, 3]) @ C2W[:3, :3]
+    pc = (pts[:2] - C2W[:3, 3]) @ C2W[:3, :3]
     hom = pc @ cam.K.numpy().T
-    np.testing.assert_allclose(hom[:, :2] / hom[:, 2:], uv, rtol=1e-12)
+    np.testing.assert_allclose(hom[:, :2] / hom[:, 2:], uv[:2], rtol=1e-12)
+    # the ray through a projected point's pixel passes through the point
+    u, v = uv[0]
+    d = cam.ray_directions()[int(v), int(u)]
+    assert float(d @ (pts[0] - C2W[:3, 3]) / np.linalg.norm(pts[0] - C2W[:3, 3])) > 0.99
+    with pytest.raises(ShapeError, match="camera"):
+        Camera.stack([cam, cam]).ray_directions()
 
 
 def test_the_rasterizer_renders_bit_identically_to_the_old_float32_construction():

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 import torch
 
+from core.camera import Camera
 from core.errors import ConfigError
 from core.stages.early_stop import stalled
 from core.stages.pbr import PBRStageConfig, _FrameData, sunless_capture
@@ -59,8 +60,7 @@ def test_skip_settings_are_checked():
 
 # -- overcast / night detection --------------------------------------------------------------------
 
-class _Cam:
-    width, height = 8, 4
+_CAM = Camera.from_intrinsics(np.eye(4), 8.0, 8.0, 4.0, 2.0, 8, 4)
 
 
 def _frame(sky_value: float, ground_value: float, clipped_sky: int = 0) -> _FrameData:
@@ -71,7 +71,7 @@ def _frame(sky_value: float, ground_value: float, clipped_sky: int = 0) -> _Fram
     sky = torch.zeros(h * w, dtype=torch.bool)
     sky[: 2 * w] = True
     gbuf = {"opacity": (~sky).to(torch.float32).reshape(h, w, 1)}
-    return _FrameData(_Cam(), gbuf, img.reshape(-1, 3), torch.nonzero(~sky).reshape(-1), [], sky)
+    return _FrameData(_CAM, gbuf, img.reshape(-1, 3), torch.nonzero(~sky).reshape(-1), [], sky)
 
 
 def test_sunless_capture_tells_sunny_overcast_and_night_apart():
