@@ -31,6 +31,7 @@ import math
 import numpy as np
 
 from core.errors import ShapeError
+from core.numerics import clamped_acos, safe_normalize
 
 #: Rotation about +x, in degrees, that makes Mitsuba's envmap emitter follow this convention.
 MITSUBA_ENVMAP_TO_WORLD_ROTATION_X_DEG = 90.0
@@ -154,7 +155,6 @@ def direction_to_uv_torch(dirs_world, height: int, width: int):
     poles). dirs_world: [..., 3] world. Returns (u, v) in pixels, u in [0, W), v in [0, H]."""
     import torch
 
-    from core.numerics import clamped_acos, safe_normalize
 
     d = safe_normalize(dirs_world)
     theta = clamped_acos(d[..., 2])

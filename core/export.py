@@ -14,6 +14,10 @@ import numpy as np
 
 from core.bundle import SceneBundle
 from core.errors import ConfigError
+from core.io.exr import write_exr
+from core.io.images import write_png
+from core.io.video import write_mp4
+from core.tonemap import hdr_to_ldr, ldr_to_hdr
 
 
 @dataclass
@@ -48,10 +52,6 @@ def export_frames(bundle: SceneBundle, out_dir: str | Path, *, split: str = "all
     ``preview.png`` into ``out_dir``."""
     from tqdm import tqdm
 
-    from core.io.exr import write_exr
-    from core.io.images import write_png
-    from core.io.video import write_mp4
-    from core.tonemap import hdr_to_ldr, ldr_to_hdr
 
     if split not in ("all", "train", "test"):
         raise ConfigError(f"split: expected all, train or test, got {split!r}")

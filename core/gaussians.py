@@ -52,7 +52,10 @@ from typing import Iterable
 import torch
 
 from core.errors import FormatError, ShapeError
+from core.io.atomic import atomic_output
+from core.io.torchfile import read_torch_file
 from core.numerics import require_finite, safe_normalize
+from core.raster.splat import safe_normalize_quat
 
 FORMAT_NAME = "brdfusion.gaussians"
 FORMAT_VERSION = 2
@@ -178,8 +181,6 @@ class Gaussians:
 
     def rotations(self) -> torch.Tensor:
         """[N, 4] unit quaternions wxyz (zero quaternion -> identity)."""
-        from core.raster.splat import safe_normalize_quat
-
         return safe_normalize_quat(self.quats)
 
     def scales(self) -> torch.Tensor:
@@ -307,7 +308,6 @@ class Gaussians:
         for k, v in self.tensors().items():
             payload[k] = v.detach().to("cpu").contiguous()
         path = Path(path)
-        from core.io.atomic import atomic_output
 
         with atomic_output(path) as tmp:
             torch.save(payload, tmp)
@@ -315,8 +315,6 @@ class Gaussians:
     @classmethod
     def load(cls, path: str | Path) -> "Gaussians":
         """Read a file written by :meth:`save`; FormatError names the file and field if it is bad."""
-        from core.io.torchfile import read_torch_file
-
         path = Path(path)
         payload = read_torch_file(path, FORMAT_NAME, range(1, FORMAT_VERSION + 1), "Gaussians file", pass_missing=True)
         version = payload["version"]

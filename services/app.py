@@ -27,6 +27,7 @@ from fastapi.responses import JSONResponse
 
 import api_schemas as S
 from services.auth import Authenticator, create_key
+from services.dashboard import mount_dashboard
 from services.db import get_database
 from services.metrics import MetricsMiddleware, Registry
 from services.routes import envmaps as envmap_routes
@@ -34,8 +35,7 @@ from services.routes import jobs as job_routes
 from services.routes import objects as object_routes
 from services.routes import scenes as scene_routes
 from services.routes import system as system_routes
-from services.routes.common import (E, UPLOAD_PATHS, Ctx, _err, attempt_out, envmap_out, job_out,  # noqa: F401
-                                    ok, ok_json, scene_out)
+from services.routes.common import UPLOAD_PATHS, Ctx, E, _err, attempt_out, envmap_out, job_out, ok, ok_json, scene_out  # noqa: F401
 from worker.queue import expire_failed_artifacts, reconcile, redis_conn, sweep_work_dirs
 from worker.settings import Settings, get_settings
 from worker.storage import get_store
@@ -136,7 +136,6 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.include_router(mod.build(ctx))
     app.state.unserved_queues = ctx.unserved_queues
 
-    from services.dashboard import mount_dashboard
 
     mount_dashboard(app)
     return app

@@ -22,6 +22,9 @@ import time
 import uuid
 from dataclasses import dataclass, field
 
+from worker.db import Job, get_database
+from worker.queue import parse_rq_id, redis_conn, retry_dead_attempt
+
 log = logging.getLogger("brdf.supervisor")
 
 #: A worker that ran at least this long before exiting restarts after the shortest backoff (a
@@ -169,8 +172,6 @@ class WorkerSupervisor:
         horse died with it."""
         from sqlalchemy import select
 
-        from worker.db import Job, get_database
-        from worker.queue import parse_rq_id, redis_conn, retry_dead_attempt
 
         st = self.settings
         conn = None

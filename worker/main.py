@@ -23,7 +23,7 @@ from rq.serializers import JSONSerializer
 from worker import jobs  # noqa: F401  (the RQ entry point and every job module, imported before work horses fork)
 from worker.db import get_database
 from worker.queue import get_queue, reconcile, redis_conn, retry_dead_attempt, sweep_work_dirs
-from worker.settings import QUEUES, Settings
+from worker.settings import QUEUES, Settings, configure
 
 log = logging.getLogger("brdf.worker")
 
@@ -100,7 +100,6 @@ def run_worker(settings: Settings, queues: list[str], *, burst: bool = False, fo
     bad = [q for q in queues if q not in QUEUES]
     if bad:
         raise ValueError(f"--queues: unknown queue(s) {bad}; known: {list(QUEUES)}")
-    from worker.settings import configure
 
     configure(settings)
 

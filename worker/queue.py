@@ -10,20 +10,21 @@ from __future__ import annotations
 
 import logging
 import os
+import re
+import shutil
 from datetime import timedelta
 
 import redis
 from rq import Queue, Worker
-from rq.job import Dependency
+from rq.job import Dependency, JobStatus
 from rq.job import Job as RQJob
-from rq.job import JobStatus
 from rq.serializers import JSONSerializer
 from sqlalchemy import select, update
 
-from worker.db import (Artifact, Database, Job, JobStage, attempt_ended, pending_stage_names, rq_job_id,
-                       utcnow)
+from worker.db import Artifact, Database, Job, JobStage, attempt_ended, pending_stage_names, rq_job_id, utcnow
 from worker.registry import job_type
 from worker.settings import QUEUES, Settings
+from worker.storage import get_store
 
 log = logging.getLogger("brdf.queue")
 JOB_FUNC = "worker.jobs.run_job"
@@ -282,8 +283,6 @@ def _drop_started(conn: redis.Redis, queue: str, rq_id: str) -> None:
 
 def parse_rq_id(rq_id: str) -> tuple[str, int, str | None] | None:
     """``(job id, attempt, stage)`` of an RQ job id made by :func:`worker.db.rq_job_id`."""
-    import re
-
     m = re.fullmatch(r"([A-Za-z0-9]+)-a(\d+)(?:-(.+))?", rq_id or "")
     return (m.group(1), int(m.group(2)), m.group(3)) if m else None
 
@@ -304,10 +303,6 @@ def cleanup_attempt(settings: Settings, job_id: str, attempt: int, stage: str | 
     machine) and its outputs in the store (none of them registered: a stage registers its
     artifacts only when it succeeds). A reconstruct job's run directory is kept: the retry
     resumes from its checkpoint."""
-    import shutil
-
-    from worker.storage import get_store
-
     work = settings.data_dir / "work"
     for d in [work / f"{job_id}.{attempt}", *work.glob(f"{job_id}.{attempt}.*")]:
         shutil.rmtree(d, ignore_errors=True)
@@ -321,8 +316,6 @@ def cleanup_attempt(settings: Settings, job_id: str, attempt: int, stage: str | 
 def sweep_work_dirs(settings: Settings, db: Database) -> int:
     """Remove scratch directories (``work/<job>.<attempt>...``) of attempts that are not running
     (left by a worker killed with its work horse). Returns how many were removed."""
-    import shutil
-
     work = settings.data_dir / "work"
     if not work.is_dir():
         return 0
@@ -349,8 +342,6 @@ def expire_failed_artifacts(settings: Settings, db: Database) -> int:
     """Delete the artifacts of jobs that failed or were canceled more than
     ``failed_artifact_ttl_s`` ago (e.g. the finished stages of a chain whose later stage failed):
     the store objects and their rows. Returns how many artifacts were removed."""
-    from worker.storage import get_store
-
     cutoff = utcnow() - timedelta(seconds=settings.failed_artifact_ttl_s)
     with db.session() as s:
         rows = s.execute(select(Artifact.id, Artifact.job_id, Artifact.storage_key).join(Job, Job.id == Artifact.job_id)

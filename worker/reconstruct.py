@@ -19,7 +19,9 @@ from pathlib import Path
 from sqlalchemy import select
 
 from api_schemas import ReconstructRequest
-from core.stages.chain import STAGES
+from core.bundle import open_bundle
+from core.stages.chain import (RUN_FILE, STAGES, RunDir, profile_settings, resolve_stages, run_stage, scale_iterations,
+                               stage_spec, write_json)
 from worker.db import Artifact, Job
 from worker.runtime import JobContext, JobType
 from worker.settings import QUEUE_TRAIN
@@ -34,8 +36,6 @@ SUMMARY_FIGURES = ("test_psnr", "test_ssim", "train_psnr", "gaussians", "sky_flo
 
 def reconstruct_stages(p: ReconstructRequest) -> tuple[str, ...]:
     """The requested stages in chain order (each once)."""
-    from core.stages.chain import resolve_stages
-
     return resolve_stages(list(p.stages))
 
 
@@ -43,8 +43,6 @@ def reconstruct_unavailable(p: ReconstructRequest) -> str | None:
     """Why this build cannot run ``p``, or None. A chain must start where its inputs exist: the
     first requested stage may only read stages that are also requested (a new job has no earlier
     outputs)."""
-    from core.stages.chain import stage_spec
-
     asked = reconstruct_stages(p)
     missing = sorted({r for s in asked for r in stage_spec(s).reads if r not in asked})
     if missing:
@@ -61,8 +59,6 @@ def restore_run(ctx: JobContext, job_id: str, scene_dir: Path, profile: str, sta
     """The run directory of reconstruct job ``job_id`` on this disk, with every registered
     artifact of the given ``stages`` (None: all) fetched where missing. Returns a
     :class:`core.stages.chain.RunDir`."""
-    from core.stages.chain import RUN_FILE, RunDir, write_json
-
     root = run_dir_path(ctx, job_id)
     root.mkdir(parents=True, exist_ok=True)
     # the scene path is this machine's cache of the bundle: written on every restore
@@ -85,9 +81,6 @@ def restore_run(ctx: JobContext, job_id: str, scene_dir: Path, profile: str, sta
 
 def _run_one(stage: str):
     def run(ctx: JobContext, p: ReconstructRequest) -> None:
-        from core.bundle import open_bundle
-        from core.stages.chain import profile_settings, run_stage, scale_iterations
-
         scene = ctx.scene_dir()
         earlier = STAGES[:STAGES.index(stage)]
         run_dir = restore_run(ctx, ctx.job.id, scene, p.profile, earlier)

@@ -7,6 +7,8 @@ import threading
 from pathlib import Path
 
 from api_schemas import OutputKind, RenderRequest
+from core.bundle import open_bundle
+from core.export import export_frames
 from worker.runtime import JobContext, JobType
 from worker.settings import QUEUE_RENDER
 
@@ -23,9 +25,6 @@ def _watch_frames(ctx: JobContext, frames_dir: Path, total: int, stop: threading
 
 def run_render(ctx: JobContext, p: RenderRequest) -> None:
     """Export the scene's frames: multi-layer EXR per frame, MP4, a PNG preview (core.export)."""
-    from core.bundle import open_bundle
-    from core.export import export_frames
-
     ctx.stage("fetch")
     bundle = open_bundle(ctx.scene_dir())
     frames = bundle.frames(None if p.split == "all" else p.split)

@@ -20,6 +20,7 @@ stages and one function ``run(ctx, params)`` that gets a :class:`JobContext`; th
 from __future__ import annotations
 
 import logging
+import math
 import mimetypes
 import os
 import shutil
@@ -34,6 +35,8 @@ from typing import Callable, Mapping
 from pydantic import BaseModel
 from sqlalchemy import delete, func, select, update
 
+from core.bundle import ArchiveLimits, unpack_bundle
+from core.errors import CoreError
 from worker.db import (Artifact, Database, Job, JobStage, Scene, attempt_ended, attempt_started, get_database,
                        pending_stage_names, utcnow)
 from worker.settings import Settings, get_settings
@@ -54,8 +57,6 @@ def finite_metrics(metrics: dict, where: str) -> dict:
     """``metrics`` with every NaN or infinite number replaced by None (JSON has no NaN: the API,
     the database's JSON and the dashboard would get invalid documents), each replacement logged
     with its key. A curve keeps its finite points only."""
-    import math
-
     out = {}
     for k, v in metrics.items():
         if isinstance(v, float) and not math.isfinite(v):
@@ -164,8 +165,6 @@ class JobContext:
     def scene_dir(self) -> Path:
         """The job's scene bundle, unpacked in this machine's scene cache (fetched from the
         artifact store the first time, so workers on other machines need no shared disk)."""
-        from core.bundle import ArchiveLimits, unpack_bundle
-
         with self.db.session() as s:
             scene = s.get(Scene, self.job.scene_id)
             if scene is None:
@@ -321,8 +320,6 @@ def run_attempt(job_id: str, attempt: int, stage: str | None, job_type: Callable
     """Run attempt ``attempt`` of job ``job_id`` (of its ``stage``, for a chained job): claim it,
     beat, run the type that ``job_type`` names, and settle the outcome; a retry is queued with
     ``requeue(settings, db, job)``. Returns a small JSON summary (the RQ job's result)."""
-    from core.errors import CoreError
-
     settings = get_settings()
     db = get_database(settings.db_url)
     store = get_store(settings.store_url, settings.artifact_store_options)

@@ -49,12 +49,13 @@ from pathlib import Path
 
 import numpy as np
 
-from core.adapters._common import check_test_every, progress as _progress, read_numbers, \
-    rigid_or_error, split_for
+from core.adapters._common import check_test_every, read_numbers, rigid_or_error, split_for
+from core.adapters._common import progress as _progress
 from core.bundle.schema import Camera
 from core.bundle.writer import BundleWriter
 from core.conventions import WAYMO_TO_OPENCV
 from core.errors import BundleError, ConfigError
+from core.io.images import image_size, read_mask
 
 #: drivestudio's Waymo camera ids and names.
 WAYMO_CAMERA_NAMES = {0: "FRONT", 1: "FRONT_LEFT", 2: "FRONT_RIGHT", 3: "SIDE_LEFT", 4: "SIDE_RIGHT"}
@@ -89,8 +90,6 @@ def import_drivestudio(src_dir: str | Path, out_dir: str | Path, *,
     Returns the bundle directory. Raises :class:`BundleError` naming the source file that is
     missing or malformed, :class:`ConfigError` for bad arguments.
     """
-    from core.io.images import image_size, read_mask
-
     check_test_every(test_every)
     if not (isinstance(time_step, (int, float)) and time_step > 0):
         raise ConfigError(f"time_step: expected a positive number of seconds, got {time_step!r}")

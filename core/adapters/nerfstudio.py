@@ -39,12 +39,13 @@ from pathlib import Path
 
 import numpy as np
 
-from core.adapters._common import COPYABLE_IMAGE_SUFFIXES, check_test_every, progress as _progress, \
-    rigid_or_error, safe_id, split_for
+from core.adapters._common import COPYABLE_IMAGE_SUFFIXES, check_test_every, rigid_or_error, safe_id, split_for
+from core.adapters._common import progress as _progress
 from core.bundle.schema import Camera
 from core.bundle.writer import BundleWriter
 from core.conventions import OPENCV_TO_OPENGL
 from core.errors import BundleError, ConfigError
+from core.io.images import image_size
 
 #: Default seconds between consecutive frames (nerfstudio captures carry no timestamps).
 DEFAULT_TIME_STEP = 0.1
@@ -68,8 +69,6 @@ def import_nerfstudio(src_dir: str | Path, out_dir: str | Path, *, name: str | N
     Returns the bundle directory. Raises :class:`BundleError` naming the file (and field) that is
     missing or malformed, :class:`ConfigError` for bad arguments.
     """
-    from core.io.images import image_size
-
     check_test_every(test_every)
     if orient and world_up is not None:
         raise ConfigError("orient/world_up: give at most one")

@@ -10,6 +10,9 @@ import numpy as np
 
 from core.bundle.schema import GT_FRAME_LAYERS, MANIFEST_NAME, Frame, Manifest, parse_manifest
 from core.errors import BundleError, CoreError
+from core.io.envmap_file import read_envmap
+from core.io.exr import exr_header, read_exr
+from core.io.images import image_size, read_image, read_mask
 
 #: Largest manifest accepted (bytes): a manifest of 10k frames is ~10 MB.
 MAX_MANIFEST_BYTES = 64 * 1024 * 1024
@@ -48,9 +51,6 @@ def read_manifest(root: str | Path) -> Manifest:
 
 def _check_files(root: Path, m: Manifest) -> list[BundleIssue]:
     """File-level checks: every referenced file exists, is readable and has consistent size."""
-    from core.io.exr import exr_header
-    from core.io.images import image_size
-
     issues: list[BundleIssue] = []
 
     def exists(rel: str, field: str) -> Path | None:
@@ -192,14 +192,10 @@ class SceneBundle:
     # loaders ----------------------------------------------------------------------------------
     def load_image(self, frame: Frame) -> np.ndarray:
         """LDR image [H, W, 3] float32 in [0, 1]."""
-        from core.io.images import read_image
-
         return read_image(self.path(frame.image)).astype(np.float32) / 255.0
 
     def load_sky_mask(self, frame: Frame) -> np.ndarray | None:
         """Sky mask [H, W] bool (True = sky) or None when the bundle has none for this frame."""
-        from core.io.images import read_mask
-
         return read_mask(self.path(frame.sky_mask)) if frame.sky_mask else None
 
     def load_lidar(self, time_index: int | None = None) -> np.ndarray:
@@ -212,16 +208,12 @@ class SceneBundle:
 
     def load_ground_truth(self, frame: Frame) -> dict[str, np.ndarray]:
         """Ground-truth layers of a synthetic frame: rgb, albedo, roughness, metallic, normal, depth."""
-        from core.io.exr import read_exr
-
         if not frame.ground_truth:
             raise BundleError("frame has no ground truth", MANIFEST_NAME, f"frames (id {frame.id})")
         return read_exr(self.path(frame.ground_truth))
 
     def load_envmap(self, relit_name: str | None = None) -> np.ndarray:
         """Ground-truth environment map [H, W, 3] float32 (training one, or a relit set's)."""
-        from core.io.envmap_file import read_envmap
-
         gt = self.manifest.ground_truth
         if gt is None:
             raise BundleError("bundle has no ground truth", MANIFEST_NAME, "ground_truth")

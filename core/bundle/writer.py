@@ -11,11 +11,13 @@ from pathlib import Path
 
 import numpy as np
 
-from core.bundle.schema import (
-    GT_FRAME_LAYERS, MANIFEST_NAME, Camera, Frame, GroundTruth, LidarSweep, Manifest, ObjectTrack,
-    RelitSet, parse_manifest, parse_rigid,
-)
+from core.bundle.reader import validate_bundle
+from core.bundle.schema import (GT_FRAME_LAYERS, MANIFEST_NAME, Camera, Frame, GroundTruth, LidarSweep, Manifest,
+                                ObjectTrack, RelitSet, parse_manifest, parse_rigid)
 from core.errors import BundleError, ConfigError, ShapeError
+from core.io.envmap_file import read_envmap, write_envmap
+from core.io.exr import write_exr
+from core.io.images import write_png
 from core.numerics import require_finite_np
 
 
@@ -88,9 +90,6 @@ class BundleWriter:
         ``image_file`` (PNG/JPEG, copied as is). ``sky_mask``: bool [H, W], True = sky.
         ``ground_truth``: layers as in ``GT_FRAME_LAYERS`` (rgb HDR, albedo, roughness, metallic,
         normal world, depth metres)."""
-        from core.io.exr import write_exr
-        from core.io.images import write_png
-
         if camera not in self.cameras:
             raise ConfigError(f"camera: unknown camera {camera!r}; add it first")
         if any(f.id == frame_id for f in self.frames):
@@ -150,8 +149,6 @@ class BundleWriter:
                                         {int(t): np.asarray(m, np.float64) for t, m in poses.items()}))
 
     def _write_envmap(self, name: str, envmap: np.ndarray | None, envmap_file: str | Path | None) -> str:
-        from core.io.envmap_file import read_envmap, write_envmap
-
         if (envmap is None) == (envmap_file is None):
             raise ConfigError("envmap/envmap_file: give exactly one")
         if envmap_file is not None:
@@ -176,8 +173,6 @@ class BundleWriter:
                   rotation_deg: float = 0.0, *, envmap_file: str | Path | None = None) -> None:
         """Ground-truth HDR frames [H, W, 3] of existing frame ids under another envmap (array or
         ``envmap_file``, as in :meth:`set_ground_truth_envmap`)."""
-        from core.io.exr import write_exr
-
         if self.ground_truth is None:
             raise ConfigError("set_ground_truth_envmap must be called before add_relit")
         known = {f.id for f in self.frames}
@@ -208,8 +203,6 @@ class BundleWriter:
 
     def finish(self, validate: bool = True) -> Path:
         """Write the manifest, validate the staged bundle, and move it into place. Returns root."""
-        from core.bundle.reader import validate_bundle
-
         if self._done:
             raise ConfigError("finish: bundle already finished")
         try:

@@ -40,7 +40,9 @@ from pathlib import Path
 import numpy as np
 
 from core.errors import ConfigError, DependencyError, ModelLoadError, NumericalError, ShapeError
-from core.gen.edm import SamplerSettings
+from core.gen.edm import OnnxDenoiser, SamplerSettings, sdedit
+from core.gen.encoding import encode_env, forward_conditioning, ldr_to_data
+from core.gen.runtime import load_model
 
 BACKENDS = ("none", "oidn", "diffusion")
 FALLBACKS = ("none", "oidn")
@@ -189,9 +191,6 @@ def denoise_diffusion(frames: np.ndarray, albedo: np.ndarray, normal: np.ndarray
     (naming the file) when the model cannot be used."""
     import torch
 
-    from core.gen.edm import OnnxDenoiser, sdedit
-    from core.gen.encoding import encode_env, forward_conditioning, ldr_to_data
-    from core.gen.runtime import load_model
 
     path = Path(settings.model_path) if settings.model_path else DEFAULT_FORWARD_MODEL
     sess = load_model(path, kind="forward_denoiser", threads=settings.threads)

@@ -44,7 +44,7 @@ import numpy as np
 import torch
 
 from core.errors import ConfigError, ShapeError
-from core.numerics import require_finite
+from core.numerics import require_finite, require_finite_np
 
 Denoiser = Callable[[torch.Tensor, torch.Tensor, Mapping[str, torch.Tensor]], torch.Tensor]
 
@@ -295,7 +295,6 @@ def flicker(frames) -> float:
     a = frames.detach().cpu().numpy() if isinstance(frames, torch.Tensor) else np.asarray(frames)
     if a.ndim < 2 or a.shape[0] < 2:
         raise ShapeError(f"frames: need [T >= 2, ...], got {a.shape}")
-    from core.numerics import require_finite_np
 
     require_finite_np(a, "frames")
     return float(np.mean(np.abs(np.diff(a.astype(np.float64), axis=0))))

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from core.conventions import envmap_directions
 from core.errors import ShapeError
 from core.gen import contract as C
 from core.numerics import require_finite_np
@@ -107,8 +108,6 @@ def encode_env(env_hdr, cam_to_world) -> dict[str, np.ndarray]:
     """DiffusionRenderer-style environment encoding for one frame: ``env_ldr``, ``env_log``,
     ``env_dir`` each [3, ENV_H, ENV_W] (see :mod:`core.gen.contract`). ``env_hdr``: [He, We, 3]
     linear radiance >= 0, He x We a multiple of 64 x 128 (e.g. 512 x 1024)."""
-    from core.conventions import envmap_directions
-
     e = _img(env_hdr, "env", 3)
     if (e < 0).any():
         raise ShapeError(f"env: {int((e < 0).sum())} negative radiance value(s)")

@@ -41,7 +41,11 @@ import torch
 from core.errors import ConfigError, ModelLoadError, NumericalError
 from core.gen import contract as C
 from core.gen.data import ClipDataset, DataSettings, load_clips, split_bundles
+from core.gen.edm import GENERATE_SAMPLER, OnnxDenoiser, SamplerSettings, flicker, generate, sdedit
 from core.gen.nets import UNetSettings, build_model, count_parameters, export_onnx
+from core.gen.runtime import load_model
+from core.io.atomic import atomic_output
+from core.metrics import angular_error_deg, psnr, si_psnr
 
 
 @dataclass(frozen=True)
@@ -157,8 +161,6 @@ def edm_loss(model, batch: dict[str, torch.Tensor], s: TrainSettings, gen: torch
 
 
 def _atomic_save(obj, path: Path) -> None:
-    from core.io.atomic import atomic_output
-
     with atomic_output(path) as tmp:
         torch.save(obj, tmp)
 
@@ -188,7 +190,6 @@ def write_model_card(onnx_path: str | Path, kind: str, *, network: dict, trainin
         "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "torch": torch.__version__},
     }
     out = p.with_name(p.stem + ".card.json")
-    from core.io.atomic import atomic_output
 
     text = json.dumps(card, indent=2, default=str)
     with atomic_output(out) as tmp:
@@ -363,10 +364,6 @@ def evaluate_model(kind: str, onnx_path: str | Path, bundle_dirs, data: DataSett
     inverse_gbuffer: sampling from noise conditioned on the frames; ``albedo_si_psnr``,
     ``roughness_rmse``, ``metallic_rmse``, ``normal_mae_deg`` over non-sky pixels (paper metrics).
     """
-    from core.gen.edm import GENERATE_SAMPLER, OnnxDenoiser, SamplerSettings, flicker, generate, sdedit
-    from core.gen.runtime import load_model
-    from core.metrics import angular_error_deg, psnr, si_psnr
-
     data = data or DataSettings()
     sess = load_model(onnx_path, kind=kind, threads=threads)
     den = OnnxDenoiser(sess)

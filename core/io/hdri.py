@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from core.errors import ConfigError
+from core.io.envmap_file import read_envmap
 
 #: Where the bundled real HDRIs live (CC0, see data/hdri/README.md).
 HDRI_DIR = Path(__file__).resolve().parents[2] / "data" / "hdri"
@@ -48,8 +49,6 @@ def rotate_equirect(env: np.ndarray, degrees: float) -> np.ndarray:
 
 def load_hdri(name_or_path: str, rotation_deg: float = 0.0) -> np.ndarray:
     """[H, W, 3] float32 linear radiance of a bundled HDRI or file, rotated."""
-    from core.io.envmap_file import read_envmap
-
     return rotate_equirect(read_envmap(resolve_hdri(name_or_path)), rotation_deg)
 
 

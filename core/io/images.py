@@ -13,6 +13,7 @@ import numpy as np
 
 from core.errors import ConfigError, FormatError, ShapeError
 from core.io.atomic import atomic_output
+from core.numerics import require_finite_np
 
 DEFAULT_MAX_PIXELS = 64_000_000
 
@@ -159,7 +160,6 @@ def write_png(path: str | os.PathLike, arr: np.ndarray) -> None:
     """
     from PIL import Image
 
-    from core.numerics import require_finite_np
 
     a = np.asarray(arr)
     if a.ndim == 3 and a.shape[2] == 1:

@@ -47,6 +47,7 @@ import numpy as np
 from core.conventions import (camera_ray_directions, envmap_directions, envmap_solid_angles, pixel_to_direction,
                               project_points)
 from core.errors import ConfigError, ShapeError
+from core.gen.encoding import area_downsample
 from core.lighting.sky_transport import ALBEDO_FLOOR, SkyTransport, TransportSettings, paper_brdf_weights
 from core.numerics import require_finite_np
 
@@ -226,8 +227,6 @@ def envmap_log_error(est, gt, low_res: tuple[int, int] = (64, 128)) -> dict:
     (``log_l1``) and after area-averaging both to ``low_res`` (``log_l1_lowres``: insensitive to
     sub-degree misplacement of the sun), plus the same for the upper hemisphere only
     (``log_l1_sky``)."""
-    from core.gen.encoding import area_downsample
-
     est, gt = np.asarray(est, np.float32), np.asarray(gt, np.float32)
     if gt.shape != est.shape:
         raise ShapeError(f"est {est.shape} and gt {gt.shape} differ")

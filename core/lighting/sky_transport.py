@@ -35,6 +35,7 @@ import numpy as np
 
 from core.errors import ConfigError, ShapeError
 from core.numerics import require_finite_np
+from core.pbr.brdf import cook_torrance
 
 
 @dataclass(frozen=True)
@@ -107,7 +108,6 @@ def paper_brdf_weights(normals, view_dirs, albedo, roughness, metallic, chunk: i
     """
     import torch
 
-    from core.pbr.brdf import cook_torrance
 
     n = torch.from_numpy(np.asarray(normals, np.float64).reshape(-1, 3))
     m = len(n)

@@ -57,6 +57,7 @@ import torch.nn.functional as F
 
 from core import conventions
 from core.errors import ConfigError, ShapeError
+from core.io.envmap_file import read_envmap
 from core.numerics import ENV_RADIANCE_MAX, LOG_RADIANCE_FLOOR, require_finite
 
 #: Default size of the resampled map (rows, columns), as in the paper.
@@ -180,8 +181,6 @@ class EnvironmentMap:
     def from_file(cls, path: str | os.PathLike, **kwargs) -> "EnvironmentMap":
         """Read ``.exr`` / ``.hdr`` with :func:`core.io.read_envmap` and wrap it (kwargs as
         :class:`EnvironmentMap`)."""
-        from core.io.envmap_file import read_envmap
-
         return cls(read_envmap(path), **kwargs)
 
     @classmethod

@@ -41,9 +41,9 @@ from typing import Mapping, Sequence
 import numpy as np
 import torch
 
+from core.conventions import is_rigid
 from core.errors import ConfigError, ShapeError
-from core.numerics import (LIGHT_DIST_SQ_MIN, LIGHT_INTENSITY_MAX, require_finite, safe_normalize, safe_sqrt,
-                           smoothstep)
+from core.numerics import LIGHT_DIST_SQ_MIN, LIGHT_INTENSITY_MAX, require_finite, safe_normalize, safe_sqrt, smoothstep
 from core.pbr.brdf import cook_torrance, dot
 from core.pbr.mis import Visibility, check_shading_inputs
 
@@ -146,8 +146,6 @@ def lights_to_world(lights: Sequence[PointLight], node_poses: Mapping[str, objec
     """Place lights in the world: those attached to a node are transformed by
     ``node_poses[node]`` (4x4 ``obj_to_world``, rigid). Raises ConfigError naming a missing node
     or a non-rigid pose."""
-    from core.conventions import is_rigid
-
     node_poses = node_poses or {}
     pos, axis, rad, ci, co, rng, spot, names = [], [], [], [], [], [], [], []
     for i, light in enumerate(lights):

@@ -33,6 +33,11 @@ import numpy as np
 import torch
 
 from core.errors import ConfigError, FormatError
+from core.gaussians import Gaussians
+from core.io.atomic import atomic_output
+from core.io.torchfile import read_torch_file
+from core.pbr.lights import PointLight, SpotLight
+from core.rotations import quat_slerp, quat_to_rotmat, rotmat_to_quat
 
 #: Classes whose nodes carry vehicle lights (lower case; drivestudio's Waymo classes included).
 VEHICLE_CLASSES = frozenset({"car", "vehicle", "truck", "bus", "van", "suv", "pickup", "motorcycle", "trailer",
@@ -146,7 +151,6 @@ def solid_filler(gaussians, size: Sequence[float], *, voxel_m: float = 0.15, cle
     shape."""
     from scipy.spatial import cKDTree
 
-    from core.gaussians import Gaussians
 
     for name, v, lo, hi in (("voxel_m", voxel_m, 0.01, 5.0), ("clearance_m", clearance_m, 0.0, 10.0),
                             ("top_margin_voxels", top_margin_voxels, 0.0, 10.0),
@@ -219,8 +223,6 @@ def solid_filler(gaussians, size: Sequence[float], *, voxel_m: float = 0.15, cle
 def prepare_edited(gaussians, size: Sequence[float], *, crop: bool = True, solid: bool = True):
     """An edited (moved or inserted) object's Gaussians: cropped to its box (:func:`crop_to_box`)
     and filled (:func:`solid_filler`), as asked."""
-    from core.gaussians import Gaussians
-
     g = crop_to_box(gaussians, size) if crop else gaussians.detach()
     if solid:
         f = solid_filler(g, size)
@@ -259,7 +261,6 @@ def ground_fill(background, poses, size: Sequence[float], *, cell_m: float = GRO
     is. Empty when the background has no ground Gaussian near the strip."""
     from scipy.spatial import cKDTree
 
-    from core.gaussians import Gaussians
 
     for name, v, lo, hi in (("cell_m", cell_m, 0.02, 5.0), ("reach_m", reach_m, 0.0, 500.0),
                             ("margin_m", margin_m, 0.0, 10.0), ("max_gap_m", max_gap_m, 0.0, 100.0)):
@@ -351,8 +352,6 @@ def vehicle_lights(graph, *, headlight_cd: float = 3000.0, tail_light_cd: float 
     face (a reconstructed body's Gaussians are centimetres wide: a lamp inside them would be
     shadowed by them). In the node frame: they follow the node's pose. ConfigError names an ``off`` id that
     is not a node."""
-    from core.pbr.lights import PointLight, SpotLight
-
     names = [n.name for n in graph.nodes]
     bad = [x for x in off if x not in names]
     if bad:
@@ -391,7 +390,6 @@ def export_asset(graph, object_id: str, path: str | Path, *, crop: bool = True, 
     path.parent.mkdir(parents=True, exist_ok=True)
     payload = {"format": ASSET_FORMAT, "version": ASSET_VERSION, "id": node.name, "cls": node.cls,
                "size": list(size), "gaussians": {k: v.detach().cpu().contiguous() for k, v in g.tensors().items()}}
-    from core.io.atomic import atomic_output
 
     with atomic_output(path) as tmp:
         torch.save(payload, tmp)
@@ -401,10 +399,6 @@ def export_asset(graph, object_id: str, path: str | Path, *, crop: bool = True, 
 def load_asset(path: str | Path, what: str = "asset"):
     """``(cls, size, Gaussians)`` of an asset file (:func:`export_asset`); FormatError naming the
     file and field."""
-    from core.gaussians import Gaussians
-
-    from core.io.torchfile import read_torch_file
-
     p = Path(path)
     d = read_torch_file(p, ASSET_FORMAT, (ASSET_VERSION,), "object asset", label=f"{what} {p}")
     try:
@@ -426,8 +420,6 @@ def retime_poses(poses: torch.Tensor, time_indices: torch.Tensor, times: torch.T
     * ``lateral_offset_m``: every pose moved along its own left axis (node +y), metres: a lane
       offset that follows the road's curves.
     """
-    from core.rotations import quat_slerp, quat_to_rotmat, rotmat_to_quat
-
     if not (isinstance(speed, (int, float)) and math.isfinite(speed) and 0 <= speed <= 100):
         raise ConfigError(f"speed: must be a finite number in [0, 100], got {speed!r}")
     if not (isinstance(lateral_offset_m, (int, float)) and math.isfinite(lateral_offset_m)

@@ -36,6 +36,7 @@ import numpy as np
 
 from core.errors import ConfigError, ShapeError
 from core.numerics import require_finite_np
+from core.render.scenario import LightSpec
 
 
 @dataclass(frozen=True)
@@ -347,8 +348,6 @@ def lamp_lights(lamps: Sequence[Lamp], settings: StreetLightSettings | None = No
                 intensity_cd: float | None = None) -> list:
     """:class:`core.render.scenario.LightSpec` spots pointing down at each lamp head
     (``intensity_cd`` overrides the settings' intensity)."""
-    from core.render.scenario import LightSpec
-
     s = settings or StreetLightSettings()
     cd = s.intensity_cd if intensity_cd is None else float(intensity_cd)
     if not (math.isfinite(cd) and cd > 0):

@@ -36,6 +36,10 @@ import numpy as np
 import torch
 
 from core.errors import ConfigError, FormatError, NumericalError
+from core.gen.edm import GENERATE_SAMPLER, OnnxDenoiser, SamplerSettings, generate, sdedit
+from core.gen.encoding import camera_to_world_dirs, decode_gbuffer, ldr_to_data
+from core.gen.runtime import load_model
+from core.io.atomic import atomic_output
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 #: The shipped inverse G-buffer model.
@@ -61,7 +65,6 @@ class GBufferPriors:
         p.parent.mkdir(parents=True, exist_ok=True)
         arrays = {f"{fid}/{k}": v.astype(np.float32) for fid, d in self.layers.items() for k, v in d.items()}
         arrays["__meta__"] = np.array(json.dumps({"source": self.source, **(meta or {})}))
-        from core.io.atomic import atomic_output
 
         with atomic_output(p, suffix=".npz") as tmp:  # savez appends .npz to a name without it
             np.savez_compressed(tmp, **arrays)
@@ -99,8 +102,6 @@ def _model_key(model: Path) -> dict:
 
 def decode_to_priors(x: np.ndarray, cam_to_world: np.ndarray) -> dict[str, np.ndarray]:
     """[9, H, W] G-buffer data space (camera-frame normals) -> the prior layers (world normals)."""
-    from core.gen.encoding import camera_to_world_dirs, decode_gbuffer
-
     d = decode_gbuffer(x)
     n = camera_to_world_dirs(d["normal"], cam_to_world)
     return {"albedo": d["albedo"], "roughness": d["roughness"], "metallic": d["metallic"],
@@ -128,10 +129,6 @@ def run_inverse_model(bundle, split: str = "train", *, model: str | Path = DEFAU
         ConfigError: no frames in ``split``, or anchors without ``sigma_tau`` / missing a frame.
         NumericalError: a non-finite model output.
     """
-    from core.gen.edm import GENERATE_SAMPLER, OnnxDenoiser, SamplerSettings, generate, sdedit
-    from core.gen.encoding import ldr_to_data
-    from core.gen.runtime import load_model
-
     clips = _clips(bundle, split)
     if not clips:
         raise ConfigError(f"bundle: no {split!r} frames to compute G-buffer priors from")

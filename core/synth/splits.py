@@ -16,7 +16,7 @@ held-out region (and a test scene always falls into its axis's region).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -141,8 +141,6 @@ def split_spec(split: str, index: int, settings: RandomisationSettings | None = 
 
 
 def _replace_relight(spec: SceneSpec, relight: tuple[str, ...]) -> SceneSpec:
-    from dataclasses import replace
-
     return replace(spec, relight_envmaps=relight)
 
 

@@ -14,7 +14,7 @@ import numpy as np
 import torch
 
 from core.bundle import SceneBundle
-from core.conventions import project_points
+from core.conventions import camera_ray_directions, project_points
 from core.errors import ConfigError
 from core.gaussians import Gaussians
 
@@ -228,8 +228,6 @@ def sweeps_from_depth(bundle: SceneBundle, depth_by_frame: dict[str, np.ndarray]
     """Pseudo-LiDAR sweeps ``[(time_index, [N, 6] origin + hit, world)]`` unprojected from
     per-frame camera z-depth maps ``[H, W(, 1)]`` (metres, 0 = no surface) of the training frames,
     every ``stride``-th pixel: the initialisation of a bundle without LiDAR."""
-    from core.conventions import camera_ray_directions
-
     out = []
     for f in bundle.frames("train"):
         d = depth_by_frame.get(f.id)

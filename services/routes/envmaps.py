@@ -15,11 +15,12 @@ from fastapi.responses import JSONResponse
 from sqlalchemy import select
 
 import api_schemas as S
+from core.errors import CoreError
+from core.io import exr_header, read_envmap
 from services.auth import Principal
-from services.routes.common import (
-    E, ENVMAP_TYPES, Ctx, IdemKey, IdPath, P, _err, _fingerprint, envmap_out, stream_upload, visible,
-)
 from services.db import IdempotencyKey
+from services.routes.common import (ENVMAP_TYPES, Ctx, E, IdemKey, IdPath, P, _err, _fingerprint, envmap_out,
+                                    stream_upload, visible)
 from worker.db import Envmap, new_id
 
 log = logging.getLogger("brdf.gateway")
@@ -35,9 +36,6 @@ def build(ctx: Ctx) -> APIRouter:
 
     # --- environment maps ---------------------------------------------------------------------
     def ingest_envmap(upload: Path, size: int, digest: str, name: str, p: Principal, idem: str | None):
-        from core.errors import CoreError
-        from core.io import exr_header, read_envmap
-
         fp = _fingerprint("envmap", digest, name)
         with db.session() as s:
             existing = idem_lookup(s, p, idem, fp, "envmap")

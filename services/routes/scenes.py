@@ -16,11 +16,13 @@ from sqlalchemy import select
 from sqlalchemy.exc import IntegrityError
 
 import api_schemas as S
+from core.bundle import ArchiveLimits, open_bundle, unpack_bundle, validate_bundle
+from core.bundle.archive import archive_kind
+from core.errors import CoreError
 from services.auth import Principal
-from services.routes.common import (
-    E, SCENE_TYPES, Ctx, IdemKey, IdPath, P, _err, _fingerprint, ok, page_total, scene_out, stream_upload,
-)
 from services.db import IdempotencyKey
+from services.routes.common import (SCENE_TYPES, Ctx, E, IdemKey, IdPath, P, _err, _fingerprint, ok, page_total,
+                                    scene_out, stream_upload)
 from worker.db import Scene, new_id
 
 log = logging.getLogger("brdf.gateway")
@@ -36,10 +38,6 @@ def build(ctx: Ctx) -> APIRouter:
 
     def ingest_scene(upload: Path, work: Path, size: int, digest: str, name: str | None, p: Principal,
                      idem: str | None) -> tuple[Scene, bool]:
-        from core.bundle import ArchiveLimits, open_bundle, unpack_bundle, validate_bundle
-        from core.bundle.archive import archive_kind
-        from core.errors import CoreError
-
         def clean(msg: str) -> str:
             return msg.replace(str(work / "bundle") + "/", "").replace(str(work / "bundle"), "bundle") \
                       .replace(str(upload), "upload")
