@@ -3,14 +3,18 @@
 from __future__ import annotations
 
 import math
+import sys
+from pathlib import Path
 
 import pytest
 import torch
-from raster_scenes import random_scene
 
-from core.camera import Camera
-from core.errors import FormatError, NumericalError, ShapeError
-from core.gaussians import FORMAT_VERSION, Gaussians
+sys.path.insert(0, str(Path(__file__).resolve().parent / "raster"))  # the rasterizer tests' scenes
+from raster_scenes import camera, random_scene  # noqa: E402
+
+from core.camera import Camera  # noqa: E402
+from core.errors import FormatError, NumericalError, ShapeError  # noqa: E402
+from core.gaussians import FORMAT_VERSION, Gaussians  # noqa: E402
 
 
 def _make(n=7, seed=0, dtype=torch.float64):
@@ -144,7 +148,6 @@ def test_validation_names_the_field(field, value, err):
 
 def test_render_through_container_gives_parameter_gradients():
     from core.raster import rasterize_gaussians
-    from raster_scenes import camera
 
     g = _make(30, 4).requires_grad_()
     out = rasterize_gaussians(g, Camera.from_intrinsics(*camera(24, 18)))
