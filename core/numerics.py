@@ -26,11 +26,6 @@ OPACITY_EPS = 1e-3
 ACOS_CLAMP = 1.0 - 1e-7
 
 
-def safe_sqrt_np(x: np.ndarray) -> np.ndarray:
-    """sqrt(max(x, 0)): for quantities that are non-negative up to rounding."""
-    return np.sqrt(np.maximum(x, 0.0))
-
-
 def safe_normalize_np(v: np.ndarray, axis: int = -1, fallback: np.ndarray | None = None) -> np.ndarray:
     """Normalise ``v`` along ``axis``; vectors shorter than sqrt(EPS_NORM_SQ) become ``fallback``
     (default: +z unit vector when the axis has length 3, else zeros)."""
@@ -45,11 +40,6 @@ def safe_normalize_np(v: np.ndarray, axis: int = -1, fallback: np.ndarray | None
     shape = [1] * v.ndim
     shape[axis] = v.shape[axis]
     return np.where(ok, out, np.asarray(fallback, dtype=v.dtype).reshape(shape))
-
-
-def clamped_acos_np(x: np.ndarray) -> np.ndarray:
-    """acos with the input clamped to [-1, 1] (exactly: used for angles, not gradients)."""
-    return np.arccos(np.clip(x, -1.0, 1.0))
 
 
 def require_finite_np(x: np.ndarray, name: str) -> np.ndarray:

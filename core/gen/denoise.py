@@ -41,7 +41,7 @@ import numpy as np
 
 from core.errors import ConfigError, DependencyError, ModelLoadError, NumericalError, ShapeError
 from core.gen.edm import OnnxDenoiser, SamplerSettings, sdedit
-from core.gen.encoding import encode_env, forward_conditioning, ldr_to_data
+from core.gen.encoding import data_to_ldr, encode_env, forward_conditioning, ldr_to_data
 from core.gen.runtime import load_model
 
 BACKENDS = ("none", "oidn", "diffusion")
@@ -224,7 +224,7 @@ def denoise_diffusion(frames: np.ndarray, albedo: np.ndarray, normal: np.ndarray
     cond = {k: torch.from_numpy(np.stack([c[k] for c in cond_frames])) for k in cond_frames[0]}
     x = torch.from_numpy(ldr_to_data(frames).transpose(0, 3, 1, 2).copy())
     out = sdedit(OnnxDenoiser(sess), x, cond, settings.sampler)
-    return np.clip((out.numpy().transpose(0, 2, 3, 1) + 1.0) * 0.5, 0.0, 1.0).astype(np.float32)
+    return data_to_ldr(out.numpy().transpose(0, 2, 3, 1))
 
 
 def denoise(frames, albedo, normal, backend: str = "none", fallback: str | None = None, *,

@@ -305,9 +305,3 @@ def clear_cache() -> None:
     """Forget every cached session (tests; a worker that wants to free memory)."""
     with _LOCK:
         _CACHE.clear()
-
-
-def cached_sessions() -> int:
-    """Number of sessions in the process cache."""
-    with _LOCK:
-        return len(_CACHE)

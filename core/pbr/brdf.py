@@ -111,14 +111,6 @@ def schlick_fresnel(f0_: torch.Tensor, cos_theta: torch.Tensor) -> torch.Tensor:
     return f0_ + (1.0 - f0_) * (c2 * c2 * c)
 
 
-def smith_g1_ggx(n_w: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
-    """Exact Smith masking of GGX ``2 c / (c + sqrt(alpha^2 (1 - c^2) + c^2))`` for ``c = n.w > 0``."""
-    c = n_w.clamp(0.0, 1.0)
-    a2 = alpha * alpha
-    root = torch.sqrt(a2 * (1.0 - c * c) + c * c)  # >= alpha > 0
-    return 2.0 * c / (c + root)
-
-
 def cook_torrance(n: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor, albedo: torch.Tensor,
                   roughness: torch.Tensor, metallic: torch.Tensor, specular=1.0) -> torch.Tensor:
     """The paper's BRDF ``f(wi, wo)`` ``[..., 3]`` in 1/sr (see the module docstring).

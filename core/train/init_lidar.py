@@ -50,14 +50,6 @@ class LidarInitConfig:
     """Random seed of the subsampling."""
 
 
-def _voxel_downsample(pts: np.ndarray, origins: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:
-    if len(pts) == 0:
-        return pts, origins
-    keys = np.floor(pts / voxel).astype(np.int64)
-    _, idx = np.unique(keys, axis=0, return_index=True)
-    return pts[idx], origins[idx]
-
-
 def _knn_stats(pts: np.ndarray, origins: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
     """Mean neighbour distance [N] and PCA normals [N, 3] oriented toward the sensor."""
     from scipy.spatial import cKDTree
