@@ -31,7 +31,7 @@ import torch
 from core.errors import ConfigError, NumericalError, ShapeError
 
 #: Tolerances of the rigidity check of ``cam_to_world`` (rotation orthonormal and det +1 within
-#: ``RIGID_ATOL``, last row 0 0 0 1 within ``LAST_ROW_ATOL``); the rasterizer's since issue #1.
+#: ``RIGID_ATOL``, last row 0 0 0 1 within ``LAST_ROW_ATOL``); the values the rasterizer always used.
 RIGID_ATOL = 1e-3
 LAST_ROW_ATOL = 1e-6
 

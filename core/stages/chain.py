@@ -27,7 +27,7 @@ killed run (``<stage>/resume/``), a loss log and timings in ``<stage>/summary.js
 
 A stage skips what the scene does not have (no LiDAR: no depth term; no sky masks: no opacity
 term; no objects: no nodes) and records that in its summary under ``skipped``. Work a stage may
-leave out by a setting (issue 15: an early stop once its validation error stops improving, no sun
+leave out by a setting (the skips: an early stop once its validation error stops improving, no sun
 search for an overcast or night capture; defaults measured by ``benchmarks/bench_skips.py``) is
 recorded, when it fires, under ``skips_fired`` (what and why).
 """

@@ -1,4 +1,4 @@
-"""Stop a stage once its validation error stops improving (issue #15 item 3, a skip).
+"""Stop a stage once its validation error stops improving (a skip: work a scene does not need).
 
 One rule for every stage: a validation value is measured every N steps (the volume stages: PSNR
 on held-out frames, higher is better; the PBR stage: the mean photometric L1 of the last N

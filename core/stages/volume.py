@@ -317,7 +317,7 @@ def lidar_depth_loss(out, px: torch.Tensor, z: torch.Tensor, min_opacity: float 
     NaN, which would leave silently. Non-finite ``z`` is a NumericalError naming it."""
     if px.numel() != z.numel():
         raise ShapeError(f"px, z: {px.numel()} pixel indices but {z.numel()} LiDAR depths")
-    if px.numel() == 0:  # mean over nothing is NaN (issue 15: stress tests)
+    if px.numel() == 0:  # mean over nothing is NaN (the numerical stress tests)
         return (out.depth * 0).sum()
     require_finite(z, "z (LiDAR depth)")
     o = out.opacity.reshape(-1)[px]
