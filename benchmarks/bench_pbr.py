@@ -2,7 +2,7 @@
 clip times, and what each skip buys.
 
 Scene (``full``): the synthetic street of ``core.synth`` (profile ``benchmark``: 320x213, seed 0,
-street 60 m) as an oracle Gaussian scene graph (:func:`core.pbr.oracle.street_scene_graph`:
+street 60 m) as an oracle Gaussian scene graph (:func:`core.synth.oracle.street_scene_graph`:
 ~50k thin flat Gaussians on the mesh surfaces with the ground-truth materials, spaced for the
 24 cameras of the train path; the two moving cars are rigid nodes), lit by ``data/hdri/city.exr``
 (real HDRI with a 3.5e4 sun). ``--quick``: 96x64, ~8k Gaussians, a reduced sweep (smoke test).
@@ -63,7 +63,7 @@ import torch  # noqa: E402
 
 from core.pbr import EnvironmentMap  # noqa: E402
 from core.pbr.lights import PointLight, SpotLight  # noqa: E402
-from core.pbr.oracle import OracleSettings, street_oracle, street_scene_graph  # noqa: E402
+from core.synth.oracle import OracleSettings, street_oracle, street_scene_graph  # noqa: E402
 from core.pbr.render import ClipRenderer, PBRSettings, render_pbr, tonemap  # noqa: E402
 from core.synth.config import profile  # noqa: E402
 from core.synth.generate import load_envmap  # noqa: E402
@@ -171,7 +171,7 @@ class Bench:
         and ESTIMATOR_VERSION (bump it when the kernel's estimator changes; speed-only kernel
         changes keep the converged references valid)."""
         h = hashlib.sha256()
-        for f in ("core/pbr/oracle.py", "core/pbr/envmap.py"):
+        for f in ("core/synth/oracle.py", "core/pbr/envmap.py"):
             h.update((ROOT / f).read_bytes())
         h.update(repr((self.cfg, self.budget, self.ref_rays, what, ESTIMATOR_VERSION)).encode())
         return h.hexdigest()[:16]

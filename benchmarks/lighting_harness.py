@@ -41,10 +41,10 @@ def estimate_from_bundle(root, split: str = "train", settings: LightingSettings 
     ``occluders`` (the cast-shadow cue): ``"none"``; ``"lidar"``: Gaussians at the capture's
     LiDAR points (every sweep, seen by a camera or not, opacity 0.9), what any reconstruction
     starts from; ``"oracle"``: the synthetic street's ground-truth meshes as thin Gaussians
-    (:func:`core.pbr.oracle.street_scene_graph`, static parts at time 0), the stand-in for a
+    (:func:`core.synth.oracle.street_scene_graph`, static parts at time 0), the stand-in for a
     converged reconstruction: a face lattice of ``oracle_gaussians`` Gaussians plus 4x finer
     bands along the face edges (:data:`ORACLE_EDGE_REFINE`; about 3x as many in all), thin
-    slivers (:attr:`core.pbr.oracle.OracleSettings.thin_slivers`).
+    slivers (:attr:`core.synth.oracle.OracleSettings.thin_slivers`).
     """
     from core.bundle import open_bundle
 
@@ -101,8 +101,8 @@ def occluder_tracer(bundle, occluders: str, oracle_gaussians: int = ORACLE_GAUSS
         g, _ = gaussians_from_lidar(bundle, replace(LidarInitConfig(), drop_unseen=False, init_opacity=0.9,
                                                      max_background_points=150_000))
     elif occluders == "oracle":
-        from core.gen.prepare import synth_config_of
-        from core.pbr.oracle import OracleSettings, street_scene_graph
+        from core.synth.prepare import synth_config_of
+        from core.synth.oracle import OracleSettings, street_scene_graph
 
         cfg = synth_config_of(bundle)
         st = OracleSettings(max_spacing=ORACLE_MAX_SPACING_M, edge_refine=ORACLE_EDGE_REFINE, thin_slivers=True)

@@ -10,7 +10,7 @@ Steps (each skips what is already done, so the script resumes after an interrupt
    model and sampler choices are made on these, never on the held-out ones), and the lighting
    prior's own held-out streets h15-h17 (``HELD_OUT_LIGHTING``) under ``--data``.
 2. ``prepare``: the forward model's inputs, PBR renders of perturbed oracle scenes at 16 rays per
-   pixel (``core.gen.prepare``), for every scene.
+   pixel (``core.synth.prepare``), for every scene.
 3. ``inverse`` / ``forward``: train that model for ``--steps`` steps (``core.gen.train``; resumes
    from its checkpoint; ``--init-from`` fine-tunes an exported model), export
    ``models/<kind>.onnx`` and its model card with held-out metrics.
@@ -101,7 +101,7 @@ def generate(data: Path, seeds) -> None:
 
 
 def prepare(data: Path, seeds) -> None:
-    from core.gen.prepare import PerturbSettings, render_pbr_inputs
+    from core.synth.prepare import PerturbSettings, render_pbr_inputs
 
     for name, seed, _, _ in scene_plan(seeds):
         root = data / name
@@ -171,7 +171,7 @@ def annotate_cards(data: Path, seeds, models: Path) -> None:
         d = json.loads(card.read_text())
         d["data_recipe"] = {
             "scenes": scenes, "generator": "core.synth (Mitsuba 3 path tracing, 64 spp), no relit sets",
-            "forward_inputs": "core.gen.prepare.render_pbr_inputs(PerturbSettings(seed=1)): perturbed oracle "
+            "forward_inputs": "core.synth.prepare.render_pbr_inputs(PerturbSettings(seed=1)): perturbed oracle "
                               "Gaussians (~47k), PBR pass at 16 rays per pixel",
             "commands": [f"python benchmarks/train_generative.py generate prepare --seeds {' '.join(map(str, seeds))}",
                          "python benchmarks/train_generative.py " + ("forward --steps 16000" if "forward" in card.name

@@ -28,6 +28,8 @@ from typing import Any, Iterator, Sequence
 import numpy as np
 import torch
 
+from core.bundle.schema import Camera as CameraRecord
+from core.conventions import camera_ray_directions, project_points
 from core.errors import ConfigError, NumericalError, ShapeError
 
 #: Tolerances of the rigidity check of ``cam_to_world`` (rotation orthonormal and det +1 within
@@ -185,8 +187,6 @@ class Camera:
 
     def to_bundle(self, id: str, distortion: tuple[float, ...] = ()) -> Any:
         """The bundle's intrinsics record (:class:`core.bundle.schema.Camera`) of one camera."""
-        from core.bundle.schema import Camera as CameraRecord
-
         self._require_single("to_bundle")
         return CameraRecord(id, self.width, self.height, self.fx, self.fy, self.cx, self.cy, tuple(distortion))
 
@@ -237,16 +237,12 @@ class Camera:
     def ray_directions(self) -> np.ndarray:
         """Unit world directions [H, W, 3] (float64) of the rays through every pixel centre
         (:func:`core.conventions.camera_ray_directions`); one camera."""
-        from core.conventions import camera_ray_directions
-
         self._require_single("ray_directions")
         return camera_ray_directions(self.pose_numpy(), self.fx, self.fy, self.cx, self.cy, self.width, self.height)
 
     def project(self, points_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(uv [N, 2] pixels, z [N] camera depth, metres) of world points [N, 3], metres; NaN uv
         behind the camera (:func:`core.conventions.project_points`); one camera."""
-        from core.conventions import project_points
-
         self._require_single("project")
         return project_points(points_world, self.pose_numpy(), self.fx, self.fy, self.cx, self.cy)
 

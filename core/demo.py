@@ -23,8 +23,15 @@ from typing import Callable
 import numpy as np
 import torch
 
+from core.bundle import open_bundle
+from core.camera import Camera
 from core.errors import ConfigError
+from core.io.hdri import load_hdri
+from core.io.images import read_image, write_png
 from core.numerics import OPACITY_EPS
+from core.raster import RasterSettings, rasterize_gaussians
+from core.render.scenario import Scenario, night_scenario, render_scenario, views_from_frames
+from core.stages.chain import RUN_FILE, RunDir, run_pipeline
 
 
 @dataclass(frozen=True)
@@ -76,9 +83,6 @@ def sheet(graph, sky, bundle, frame, relit_ldr: np.ndarray | None, gt_ldr: np.nd
           threads: int = 2) -> np.ndarray:
     """[H', W', 3] in [0, 1]: the frame's input, novel view, albedo, normal, roughness, relit and
     ground truth side by side, each captioned."""
-    from core.camera import Camera
-    from core.raster import RasterSettings, rasterize_gaussians
-
     c = bundle.camera(frame)
     t = float(bundle.manifest.times[frame.time_index])
     with torch.no_grad():
@@ -105,12 +109,6 @@ def run_demo(scene: str | Path, out: str | Path, settings: DemoSettings | None =
              say: Callable[[str], None] = print) -> dict:
     """Run the main job (module docstring) on the bundle at ``scene`` into ``out``. Returns
     ``{"seconds": {...}, "metrics": evaluation summary or None, "outputs": {...}}``."""
-    from core.bundle import open_bundle
-    from core.io.hdri import load_hdri
-    from core.io.images import read_image, write_png
-    from core.render.scenario import Scenario, night_scenario, render_scenario, views_from_frames
-    from core.stages.chain import RUN_FILE, RunDir, run_pipeline
-
     s = settings or DemoSettings()
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)

@@ -39,8 +39,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from core.bundle import open_bundle
 from core.errors import ConfigError, ShapeError
 from core.gen import encoding as E
+from core.io.exr import read_exr
+from core.tonemap import hdr_to_ldr
 
 SOURCES = ("pbr", "degrade")
 FORWARD_COND = ("normal", "depth", "albedo", "roughness", "metallic", "env_ldr", "env_log", "env_dir")
@@ -122,10 +125,6 @@ def _chw(a) -> np.ndarray:
 def load_clips(root: str | Path, settings: DataSettings | None = None, kinds=("forward", "inverse")) -> list[list[dict]]:
     """All clips of one bundle as lists of per-frame dicts of channels-first float32 arrays (module
     docstring). ``kinds`` limits what is built (the env encoding costs ~30 ms a frame)."""
-    from core.bundle import open_bundle
-    from core.io.exr import read_exr
-    from core.tonemap import hdr_to_ldr
-
     s = settings or DataSettings()
     b = open_bundle(root, validate=False)
     m = b.manifest

@@ -122,7 +122,7 @@ class LightingSettings:
     sunrise streets all within 6.1 deg (lambert: one at 27.6); the three sunsets (sun 3.3 deg
     above the horizon) stay 19-50 deg off with either. The validation city street v14 (city at
     105 deg) stayed 88 deg off with either until the occluders' blurred edges were sharpened
-    (``benchmarks/lighting_harness.py``'s ``ORACLE_EDGE_REFINE``, sliver faces in :mod:`core.pbr.oracle`), the surfaces got the
+    (``benchmarks/lighting_harness.py``'s ``ORACLE_EDGE_REFINE``, sliver faces in :mod:`core.synth.oracle`), the surfaces got the
     paper's BRDF (``surface_brdf``) and the search several starts (``search_starts``): 3.2 deg."""
     surface_brdf: str = "paper"
     """Reflectance model of the surface samples in the transport fit: ``"lambert"`` (radiance /

@@ -12,7 +12,9 @@ Modules
     :mod:`core.pbr.integrator`  the fused C++ integrator (:func:`integrate`, :class:`VisibilityCache`)
     :mod:`core.pbr.render`      the PBR pass (Eq. 3): :class:`PBRSettings`, :func:`render_pbr`,
                                 :class:`ClipRenderer`, :func:`write_frame_exr`, :func:`write_clip_mp4`
-    :mod:`core.pbr.oracle`      Gaussians placed on mesh surfaces (agreement with Mitsuba)
+
+The oracle that places Gaussians on a synthetic street's meshes (the pass's agreement with Mitsuba)
+is part of the generator: :mod:`core.synth.oracle`.
 
 Directions ``wi`` / ``wo`` point away from the surface; world frame z up, metres; roughness R
 and GGX ``alpha = R^2`` are distinct; angles are degrees in the API and radians inside.

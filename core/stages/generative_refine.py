@@ -22,7 +22,12 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from core.camera import Camera
 from core.errors import ConfigError
+from core.gen.encoding import encode_gbuffer, world_to_camera_dirs
+from core.io.images import write_png
+from core.raster import RasterSettings, rasterize_gaussians
+from core.stages.priors import run_inverse_model
 
 
 @dataclass(frozen=True)
@@ -60,9 +65,6 @@ class RefineSettings:
 def render_intrinsics(graph, bundle, frames, min_opacity: float = 0.5, threads: int = 2) -> dict[str, dict]:
     """``frame_id -> {albedo, roughness, metallic, normal (world), depth (metres, 0 = sky),
     opacity}`` rendered from the scene graph, channels-last float32 (expected values given a hit)."""
-    from core.camera import Camera
-    from core.raster import RasterSettings, rasterize_gaussians
-
     rs = RasterSettings(threads=threads)
     times = bundle.manifest.times
     out = {}
@@ -85,15 +87,11 @@ def render_intrinsics(graph, bundle, frames, min_opacity: float = 0.5, threads: 
 
 
 def _anchor(layers: dict, cam_to_world) -> np.ndarray:
-    from core.gen.encoding import encode_gbuffer, world_to_camera_dirs
-
     return encode_gbuffer(layers["albedo"], layers["roughness"], layers["metallic"],
                           world_to_camera_dirs(layers["normal"], cam_to_world), layers["depth"])
 
 
 def _preview(path, frame_img, rendered: dict, refined: dict) -> None:
-    from core.io.images import write_png
-
     def n01(n):
         return np.clip(n * 0.5 + 0.5, 0, 1)
 
@@ -105,8 +103,6 @@ def _preview(path, frame_img, rendered: dict, refined: dict) -> None:
 def run_stage(ctx) -> dict:
     """Render the intrinsics of the latest scene graph, refine them by SDEdit with the inverse
     model conditioned on the frames, write them as the next stage's priors."""
-    from core.stages.priors import run_inverse_model
-
     cfg: RefineSettings = ctx.settings
     b = ctx.bundle
     t0 = time.perf_counter()

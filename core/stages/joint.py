@@ -30,7 +30,15 @@ import numpy as np
 import torch
 
 from core.errors import ConfigError, FormatError, NumericalError
+from core.io.envmap_file import read_envmap, write_envmap
+from core.metrics import ssim
+from core.pbr.envmap import EnvironmentMap, resample
+from core.pbr.render import PBRSettings, render_pbr
+from core.pbr.visibility import GaussianTracer, TraceSettings
+from core.raster import RasterSettings
 from core.stages.early_stop import stalled
+from core.stages.volume import VolumeModel, _bce, _prior_tensors, _views, alignment_loss, lidar_depth_loss, prior_losses
+from core.train.optim import GaussianAdam, GaussianLR
 
 
 @dataclass(frozen=True)
@@ -103,8 +111,6 @@ class JointSettings:
 
 
 def _scaled_lr(scale: float):
-    from core.train.optim import GaussianLR
-
     base = GaussianLR()
     return GaussianLR(**{k: v * scale for k, v in asdict(base).items()})
 
@@ -114,15 +120,6 @@ def run_stage(ctx) -> dict:
     the run (see the module docstring)."""
     from tqdm import tqdm
 
-    from core.io.envmap_file import read_envmap, write_envmap
-    from core.metrics import ssim
-    from core.pbr.envmap import EnvironmentMap, resample
-    from core.pbr.render import PBRSettings, render_pbr
-    from core.pbr.visibility import GaussianTracer, TraceSettings
-    from core.raster import RasterSettings
-    from core.stages.volume import (VolumeModel, _bce, _prior_tensors, _views, alignment_loss, lidar_depth_loss,
-                                     prior_losses)
-    from core.train.optim import GaussianAdam
 
     cfg: JointSettings = ctx.settings
     b = ctx.bundle

@@ -31,6 +31,9 @@ import torch
 from core.camera import Camera
 from core.errors import ConfigError
 from core.gaussians import Gaussians
+from core.numerics import OPACITY_EPS
+from core.raster import rasterize_gaussians
+from core.rotations import rotmat_to_quat
 
 
 @dataclass(frozen=True)
@@ -221,7 +224,6 @@ def complete_occluders(background: Gaussians, views, settings: OccluderSettings 
     xc /= np.linalg.norm(xc, axis=1, keepdims=True)
     yc = np.cross(zc, xc)
     rot = np.stack([xc, yc, zc], -1)  # columns = local axes
-    from core.rotations import rotmat_to_quat
 
     quats = rotmat_to_quat(torch.from_numpy(rot))
     half = 0.6 * max(s.cell_m, s.step_m)
@@ -241,9 +243,6 @@ def capture_views(graph, views, raster_settings=None) -> list[tuple]:
     ``views`` are objects with ``camera`` (a :class:`core.camera.Camera`), ``time`` (seconds) and
     ``nonsky`` ([H, W, 1], 1 = surface, or None: then the
     reconstruction's own opacity < 0.5 counts as sky). Depth is the reconstruction's, rendered."""
-    from core.numerics import OPACITY_EPS
-    from core.raster import rasterize_gaussians
-
     out = []
     with torch.no_grad():
         for v in views:

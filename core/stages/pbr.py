@@ -34,7 +34,15 @@ from typing import Callable
 import numpy as np
 import torch
 
+from core.camera import Camera
 from core.errors import ConfigError, FormatError, NumericalError
+from core.io.envmap_file import write_envmap
+from core.io.images import write_png
+from core.lighting.prior import LightingSettings, estimate_lighting, numpy_visibility
+from core.pbr.envmap import EnvironmentMap, resample
+from core.pbr.render import PBRSettings, render_pbr
+from core.pbr.visibility import GaussianTracer, TraceSettings
+from core.raster import RasterSettings, rasterize_gaussians
 from core.stages.early_stop import stalled
 
 
@@ -133,10 +141,6 @@ class _FrameData:
 
 
 def _frames(graph, bundle, cfg: PBRStageConfig) -> list[_FrameData]:
-    from core.camera import Camera
-    from core.pbr.visibility import GaussianTracer, TraceSettings
-    from core.raster import RasterSettings, rasterize_gaussians
-
     frames = sorted(bundle.frames("train"), key=lambda f: (f.time_index, f.id))
     if not frames:
         raise ConfigError("bundle: no training frames for the PBR stage")
@@ -198,8 +202,6 @@ def _prior(frames: list[_FrameData], bundle, height: int, tracer=None, search_su
     with cast shadows traced through the reconstruction's static Gaussians (``tracer``).
     ``search_sun`` False: no surface sample is given (depth 0 everywhere), so the estimate runs
     no sun search and is the sky fit alone."""
-    from core.lighting.prior import LightingSettings, estimate_lighting, numpy_visibility
-
     imgs, poses, skies, deps, nrms, albs = [], [], [], [], [], []
     for f in frames:
         h, w = f.camera.height, f.camera.width
@@ -231,8 +233,6 @@ def _psnr(a: torch.Tensor, b: torch.Tensor) -> float:
 
 
 def _render(f: _FrameData, env, settings, idx: torch.Tensor, gen: torch.Generator):
-    from core.pbr.render import render_pbr
-
     return render_pbr(f.gbuf, f.camera, env, settings=settings, tracers=f.tracers, pixels=idx, generator=gen).ldr
 
 
@@ -258,11 +258,6 @@ def fit_lighting(graph, bundle, out_dir: str | Path, cfg: PBRStageConfig | None 
             saved every ``checkpoint_every`` steps; a run started with a state there continues
             from it (a killed stage resumes).
     """
-    from core.io.envmap_file import write_envmap
-    from core.io.images import write_png
-    from core.pbr.envmap import EnvironmentMap, resample
-    from core.pbr.render import PBRSettings
-
     cfg = cfg or PBRStageConfig()
     if not isinstance(cfg, PBRStageConfig):
         raise ConfigError(f"cfg: expected PBRStageConfig, got {type(cfg).__name__}")
@@ -409,8 +404,6 @@ def fit_lighting(graph, bundle, out_dir: str | Path, cfg: PBRStageConfig | None 
     write_png(out / "preview.png", strip[::2, ::2])
     (out / "summary.json").write_text(json.dumps(summary, indent=1))
     return summary
-
-
 
 
 def run_stage(ctx) -> dict:

@@ -27,10 +27,11 @@ on the held-out (test) trajectory.
 from __future__ import annotations
 
 import json
+import shutil
 import time
-from typing import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import torch
@@ -38,14 +39,18 @@ import torch
 from core.bundle import SceneBundle
 from core.camera import Camera
 from core.errors import ConfigError, FormatError, NumericalError, ShapeError
-from core.numerics import require_finite, safe_normalize
 from core.gaussians import Gaussians
+from core.io.atomic import atomic_output
+from core.metrics import psnr, ssim
+from core.numerics import require_finite, safe_normalize
 from core.raster import RasterSettings, rasterize_gaussians
+from core.rotations import quat_to_rotmat
 from core.scene_graph import SceneGraph, transform_gaussians
+from core.stages.chain import scene_skips
 from core.stages.early_stop import stalled
 from core.stages.occluders import OccluderSettings, capture_views, complete_occluders
 from core.train.density import DensityConfig, DensityController, scene_extent
-from core.train.init_lidar import LidarInitConfig, gaussians_from_lidar
+from core.train.init_lidar import LidarInitConfig, gaussians_from_lidar, sweeps_from_depth
 from core.train.optim import GaussianAdam, GaussianLR
 from core.train.sky import SkyDome
 
@@ -238,8 +243,6 @@ def _bce(o: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
 
 def evaluate(model: VolumeModel, views: list[_View], settings: RasterSettings) -> dict:
     """Mean PSNR / SSIM of the renders of ``views`` against their frames, plus the renders."""
-    from core.metrics import psnr, ssim
-
     ps, ss, renders = [], [], []
     with torch.no_grad():
         for v in views:
@@ -328,8 +331,6 @@ def lidar_depth_loss(out, px: torch.Tensor, z: torch.Tensor, min_opacity: float 
 def alignment_loss(g: Gaussians) -> torch.Tensor:
     """``mean(1 - |a . n|)`` over Gaussians: ``a`` the unit axis of the smallest scale (world),
     ``n`` the unit normal. Differentiable in the quaternions and normals (the axis choice is not)."""
-    from core.rotations import quat_to_rotmat
-
     if g.num == 0:
         return g.means.sum() * 0
     rot = quat_to_rotmat(g.quats)  # [N, 3, 3], columns = local axes in world
@@ -389,7 +390,6 @@ def run_volume(bundle: SceneBundle, cfg: VolumeSettings, out_dir: str | Path | N
     called every ``log_every`` steps (an exception raised there stops the run, e.g. a cancel)."""
     from tqdm import tqdm
 
-    from core.metrics import ssim
 
     if cfg.iterations < 1:
         raise ConfigError(f"iterations: must be >= 1, got {cfg.iterations}")
@@ -586,7 +586,6 @@ def _save_state(ckpt: Path, it: int, model: VolumeModel, opts, dens, sky_opt, rn
         "history": history,
         "validation": list(validation),
     }
-    from core.io.atomic import atomic_output
 
     with atomic_output(ckpt / STATE_FILE) as tmp:
         torch.save(payload, tmp)
@@ -627,8 +626,6 @@ def _cfg_dict(cfg: VolumeSettings) -> dict:
 def _skips(bundle, stage: str, priors) -> tuple[list[str], bool]:
     """What this scene does not have (:func:`core.stages.chain.scene_skips`) plus how the
     Gaussians start without LiDAR, and whether they must start from the depth prior."""
-    from core.stages.chain import scene_skips
-
     out = scene_skips(bundle, stage)
     no_lidar = not bundle.manifest.lidar
     if no_lidar:
@@ -641,10 +638,6 @@ def run_stage(ctx) -> dict:
     """The chain's entry point (:func:`core.stages.chain.run_stage`) for ``volume`` and
     ``volume2``: priors from the run (the inverse model's, or the latest refined ones), the
     previous graph for ``init_from_graph``, the checkpoint under ``<stage>/resume/``."""
-    import shutil
-
-    from core.train.init_lidar import sweeps_from_depth
-
     cfg: VolumeSettings = ctx.settings
     b = ctx.bundle
     wants_priors = any(w > 0 for w in (cfg.lambda_normal, cfg.lambda_albedo, cfg.lambda_roughness,

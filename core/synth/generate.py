@@ -18,8 +18,11 @@ import numpy as np
 from core.bundle import BundleWriter, Camera
 from core.io.hdri import HDRI_DIR, column_shift, load_hdri, resolve_hdri, rotate_equirect  # noqa: F401
 from core.synth.config import SynthConfig
+from core.synth.mitsuba_backend import RayCaster, render_beauty, render_gbuffers
+from core.synth.random_street import ego_lane_y as _y
 from core.synth.randomise import SUNSKY, lens_k1
 from core.synth.street import EGO_LANE_Y, make_street
+from core.tonemap import hdr_to_ldr, ldr_to_uint8
 
 # The bundled HDRI library lives in core.io.hdri; these names are kept for the generator's callers.
 resolve_envmap = resolve_hdri
@@ -59,7 +62,6 @@ def ego_lane_y(cfg: SynthConfig) -> float:
     """y of the train trajectory: the fixed generator's ego lane, or the randomised street's."""
     if cfg.scene_spec is None:
         return EGO_LANE_Y
-    from core.synth.random_street import ego_lane_y as _y
 
     return _y(cfg.scene_spec)
 
@@ -102,7 +104,6 @@ def _env(name: str, rot: float, spec=None) -> np.ndarray:
 
 def _render_job(job: tuple) -> tuple:
     from core.camera import Camera
-    from core.synth.mitsuba_backend import render_beauty, render_gbuffers
 
     kind, key, cfg, t, c2w, env_name, env_rot, seed = job
     cam_i = intrinsics(cfg)
@@ -131,8 +132,6 @@ def _render_job(job: tuple) -> tuple:
 
 def simulate_lidar(cfg: SynthConfig, t: int, x: float) -> np.ndarray:
     """A spinning LiDAR at the ego position: float32 [N, 6] world (origin xyz, hit xyz)."""
-    from core.synth.mitsuba_backend import RayCaster
-
     if cfg.lidar_beams == 0:
         return np.zeros((0, 6), np.float32)
     elev = np.radians(np.linspace(-25.0, 5.0, cfg.lidar_beams))
@@ -155,7 +154,6 @@ def generate_scene(cfg: SynthConfig, out_dir: str | Path, *, name: str | None = 
     """
     from tqdm import tqdm
 
-    from core.tonemap import hdr_to_ldr, ldr_to_uint8
 
     name = name or f"street_seed{cfg.seed}"
     spec = cfg.scene_spec

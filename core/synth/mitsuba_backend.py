@@ -17,6 +17,7 @@ from core.conventions import MITSUBA_ENVMAP_TO_WORLD_ROTATION_X_DEG, OPENCV_TO_M
 from core.errors import ConfigError, DependencyError, ShapeError
 from core.numerics import require_finite_np
 from core.synth.street import Material, Part
+from core.synth.textures import texture_image
 
 _MI = None
 
@@ -48,8 +49,6 @@ def albedo_texture(tex):
     """The Mitsuba ``bitmap`` texture (linear, bilinear, repeating) of a procedural
     :class:`core.synth.textures.AlbedoTexture`; one object per texture and process, shared by the
     BSDF and the albedo G-buffer."""
-    from core.synth.textures import texture_image
-
     if tex not in _TEXTURES:
         mi = mitsuba()
         if len(_TEXTURES) > 512:

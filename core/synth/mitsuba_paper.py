@@ -26,6 +26,9 @@ toward the camera.
 
 from __future__ import annotations
 
+import glob
+import os
+
 import numpy as np
 
 from core.camera import Camera
@@ -146,8 +149,6 @@ def _register(mi) -> None:
 
 def _find_llvm() -> str | None:
     """Path of a libLLVM new enough for Dr.Jit's kernels (>= 17; Debian's ``libllvm19``), or None."""
-    import glob
-
     for pat in ("/usr/lib/x86_64-linux-gnu/libLLVM.so.{v}*", "/usr/lib/x86_64-linux-gnu/libLLVM-{v}.so",
                 "/usr/lib/llvm-{v}/lib/libLLVM*.so*", "/usr/lib/*/libLLVM-{v}.so"):
         for v in (21, 20, 19, 18, 17):
@@ -162,7 +163,6 @@ class _Variant:
 
     def __enter__(self):
         global _REGISTERED
-        import os
 
         if not os.environ.get("DRJIT_LIBLLVM_PATH"):
             path = _find_llvm()

@@ -10,7 +10,7 @@ from core.camera import Camera
 from core.errors import ConfigError
 from core.pbr.envmap import EnvironmentMap
 from core.pbr.lights import PointLight
-from core.pbr.oracle import OracleSettings, oracle_gaussians
+from core.synth.oracle import OracleSettings, oracle_gaussians
 from core.pbr.render import PBRSettings
 from core.relight import ObjectEdit, View, apply_edits, render_clip
 from core.scene_graph import RigidNode, SceneGraph

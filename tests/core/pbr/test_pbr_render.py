@@ -15,7 +15,7 @@ from core.errors import ConfigError
 from core.gaussians import Gaussians
 from core.pbr import EnvironmentMap, GaussianTracer
 from core.pbr.lights import PointLight, SpotLight, lights_to_world
-from core.pbr.oracle import OracleSettings, oracle_gaussians
+from core.synth.oracle import OracleSettings, oracle_gaussians
 from core.camera import Camera
 from core.pbr.render import (ClipRenderer, PBRSettings, render_pbr, sample_pixels, shading_inputs, tonemap,
                              write_clip_mp4, write_frame_exr)

@@ -10,7 +10,7 @@ import torch
 from core.conventions import camera_ray_directions, look_at
 from core.errors import ConfigError
 from core.pbr.envmap import EnvironmentMap
-from core.pbr.oracle import OracleSettings, oracle_gaussians
+from core.synth.oracle import OracleSettings, oracle_gaussians
 from core.camera import Camera
 from core.pbr.render import ClipRenderer, PBRSettings
 from core.relight import View

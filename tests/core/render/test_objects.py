@@ -12,7 +12,7 @@ from core.conventions import look_at
 from core.errors import ConfigError, FormatError
 from core.gaussians import Gaussians
 from core.pbr.envmap import EnvironmentMap
-from core.pbr.oracle import OracleSettings, oracle_gaussians
+from core.synth.oracle import OracleSettings, oracle_gaussians
 from core.camera import Camera
 from core.pbr.render import ClipRenderer, PBRSettings
 from core.relight import ObjectEdit, View, apply_edits

@@ -413,7 +413,7 @@ def test_training_loader_reads_a_randomised_bundle(tiny_random_scene):
     from core.bundle import open_bundle
     from core.errors import FormatError
     from core.gen.data import DataSettings, load_clips
-    from core.gen.prepare import synth_config_of
+    from core.synth.prepare import synth_config_of
 
     _, cfg, root = tiny_random_scene
     clips = load_clips(root, DataSettings(forward_source="degrade"), kinds=("inverse",))

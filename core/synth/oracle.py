@@ -25,13 +25,17 @@ the scene has about that many Gaussians (used for the 50k-Gaussian speed benchma
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
 
+from core.camera import Camera
 from core.errors import ConfigError
 from core.gaussians import Gaussians
+from core.scene_graph import RigidNode, SceneGraph
+from core.synth.generate import camera_pose, ego_positions, intrinsics
+from core.synth.street import EGO_LANE_Y, Part, make_street
 
 
 @dataclass(frozen=True)
@@ -522,12 +526,6 @@ def street_oracle(cfg, frames=(0,), *, settings: OracleSettings | None = None, b
     lighting against Mitsuba's ``diffuse`` BSDF, rendered with ``specular = 0``). ``cameras``
     are :class:`core.camera.Camera`. Parts are taken at ``time_index``.
     """
-    from dataclasses import replace
-
-    from core.camera import Camera
-    from core.synth.generate import camera_pose, ego_positions, intrinsics
-    from core.synth.street import EGO_LANE_Y, make_street
-
     ego = ego_positions(cfg)
     street = make_street(cfg, ego)
     parts = street.parts_at(time_index)
@@ -547,11 +545,6 @@ def street_scene_graph(cfg, frames=(0,), *, settings: OracleSettings | None = No
     poses from the street's track), times ``t * cfg.frame_dt``. Returns ``(graph, cameras,
     street)``; ``graph.compose(t * cfg.frame_dt)`` holds the Gaussians of ``street.parts_at(t)``.
     ``budget`` spreads about that many Gaussians over the whole street at time 0."""
-    from core.camera import Camera
-    from core.scene_graph import RigidNode, SceneGraph
-    from core.synth.generate import camera_pose, ego_positions, intrinsics
-    from core.synth.street import EGO_LANE_Y, Part, make_street
-
     s = settings or OracleSettings()
     ego = ego_positions(cfg)
     street = make_street(cfg, ego)

@@ -12,7 +12,7 @@ import torch
 from core.bundle import open_bundle
 from core.errors import ConfigError, FormatError
 from core.gen.data import DataSettings, load_clips
-from core.gen.prepare import PerturbSettings, perturb_gaussians, render_pbr_inputs
+from core.synth.prepare import PerturbSettings, perturb_gaussians, render_pbr_inputs
 from core.gaussians import Gaussians
 from core.io.exr import read_exr
 

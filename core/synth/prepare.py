@@ -2,7 +2,7 @@
 imperfect Gaussian scenes that the forward model learns to clean.
 
 For a synthetic bundle (``core.synth``; its ``bundle.json`` records the generator config), the
-*oracle* Gaussian scene of its street (:func:`core.pbr.oracle.street_scene_graph`: thin flat
+*oracle* Gaussian scene of its street (:func:`core.synth.oracle.street_scene_graph`: thin flat
 Gaussians on the mesh surfaces with the ground-truth materials, moving cars as rigid nodes) is
 made imperfect the way a reconstruction is (:class:`PerturbSettings`: jittered positions and
 normals, blurred and dropped Gaussians, noisy albedo / roughness / metallic), then rendered by
@@ -25,7 +25,15 @@ from typing import Callable
 import numpy as np
 import torch
 
+from core.bundle import open_bundle
+from core.camera import Camera
 from core.errors import ConfigError, FormatError
+from core.gaussians import Gaussians
+from core.numerics import safe_normalize
+from core.pbr.envmap import EnvironmentMap
+from core.pbr.render import ClipRenderer, PBRSettings, write_frame_exr
+from core.synth.config import SynthConfig
+from core.synth.oracle import OracleSettings, street_scene_graph
 
 
 @dataclass(frozen=True)
@@ -71,9 +79,6 @@ class PerturbSettings:
 
 def perturb_gaussians(g, s: PerturbSettings, rng: np.random.Generator, albedo_bias: np.ndarray):
     """A perturbed copy of :class:`core.gaussians.Gaussians` ``g`` (see :class:`PerturbSettings`)."""
-    from core.gaussians import Gaussians
-    from core.numerics import safe_normalize
-
     n = g.num
     if n == 0:
         return g
@@ -95,15 +100,13 @@ def perturb_gaussians(g, s: PerturbSettings, rng: np.random.Generator, albedo_bi
 
 def synth_config_of(bundle):
     """The :class:`core.synth.config.SynthConfig` a synthetic bundle was generated from."""
-    from core.synth.config import SynthConfig
-
     src = getattr(bundle.manifest, "source", None) or {}
     cfg = src.get("config") if isinstance(src, dict) else None
     if src.get("generator") != "core.synth" or not isinstance(cfg, dict):
         raise FormatError(f"{bundle.root}: not a core.synth bundle (bundle.json source.config missing); "
                           "PBR training inputs are made from synthetic scenes")
     if cfg.get("scene_spec"):
-        # core.pbr.oracle rebuilds the fixed generator's street (lane, pinhole, flat albedo): for a
+        # core.synth.oracle rebuilds the fixed generator's street (lane, pinhole, flat albedo): for a
         # randomised street it would be the wrong scene, so refuse rather than train on it
         raise FormatError(f"{bundle.root}: a randomised street (core.synth.randomise); its PBR oracle "
                           "inputs are not supported yet (use DataSettings(forward_source='degrade'))")
@@ -120,12 +123,6 @@ def render_pbr_inputs(bundle_dir: str | Path, settings: PerturbSettings | None =
     Writes ``<out_dir or bundle/derived/pbr>/<frame id>.exr`` and ``meta.json`` (settings, counts,
     times). Returns the meta dict. ``on_frame(done, total)`` after each frame.
     """
-    from core.bundle import open_bundle
-    from core.pbr.envmap import EnvironmentMap
-    from core.pbr.oracle import OracleSettings, street_scene_graph
-    from core.camera import Camera
-    from core.pbr.render import ClipRenderer, PBRSettings, write_frame_exr
-
     s = settings or PerturbSettings()
     b = open_bundle(bundle_dir, validate=False)
     cfg = synth_config_of(b)

@@ -9,7 +9,7 @@ import torch
 from core.camera import Camera
 from core.conventions import look_at, project_points
 from core.errors import ConfigError
-from core.pbr.oracle import OracleSettings, budget_scale, oracle_gaussians, predicted_count
+from core.synth.oracle import OracleSettings, budget_scale, oracle_gaussians, predicted_count
 from core.raster import rasterize_gaussians
 from core.synth import geometry as geo
 from core.synth.street import Material, Part
