@@ -161,8 +161,8 @@ def apply_edits(graph, edits: Sequence[ObjectEdit], what: str = "edits"):
             ti, poses = (_explicit_poses(e, n_times, w) if e.poses else (src.time_indices.clone(), src.poses.detach()))
             poses = _trajectory(e, poses, ti, graph.times, w)
             g = prepare_edited(src.gaussians, object_box(src), crop=e.crop, solid=e.solid)
-            nodes = [RigidNode(src.name, src.cls, g, ti, poses, size=src.size) if n.name == e.object_id else n
-                     for n in nodes]
+            nodes = [RigidNode(src.name, src.cls, g, ti, poses, size=src.size, edited=True) if n.name == e.object_id
+                     else n for n in nodes]
         elif e.op == "insert":
             if e.object_id in names:
                 raise ConfigError(f"{w}.object_id: {e.object_id!r} already exists; pick a new id")
@@ -178,7 +178,7 @@ def apply_edits(graph, edits: Sequence[ObjectEdit], what: str = "edits"):
                     poses = _edit_pose(torch.eye(4, dtype=torch.float64).repeat(n_times, 1, 1), e.offset_m,
                                        e.yaw_deg)
                 g = prepare_edited(g, size, crop=e.crop, solid=e.solid)
-                nodes.append(RigidNode(e.object_id, cls, g, ti, poses, size=size))
+                nodes.append(RigidNode(e.object_id, cls, g, ti, poses, size=size, edited=True))
                 continue
             if e.source_object_id not in names:
                 raise ConfigError(f"{w}.source_object_id: no object {e.source_object_id!r} in the scene "
@@ -187,7 +187,7 @@ def apply_edits(graph, edits: Sequence[ObjectEdit], what: str = "edits"):
             ti, poses = (_explicit_poses(e, n_times, w) if e.poses else (src.time_indices.clone(), src.poses.detach()))
             poses = _trajectory(e, poses, ti, graph.times, w)
             g = prepare_edited(src.gaussians, object_box(src), crop=e.crop, solid=e.solid)
-            nodes.append(RigidNode(e.object_id, src.cls, g, ti, poses, size=src.size))
+            nodes.append(RigidNode(e.object_id, src.cls, g, ti, poses, size=src.size, edited=True))
         else:
             raise ConfigError(f"{w}.op: must be insert, move or remove, got {e.op!r}")
     edited = SceneGraph(background, nodes, graph.times)

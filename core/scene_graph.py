@@ -51,6 +51,9 @@ class RigidNode:
     pose_delta_trans: torch.Tensor | None = None  # [K, 3] metres, learnable
     pose_delta_rot: torch.Tensor | None = None  # [K, 3] rotation vectors, radians, learnable
     size: tuple[float, float, float] | None = None  # the tracked box (l, w, h) metres, when known
+    #: Placed by an object edit (:func:`core.relight.apply_edits`: inserted or moved), not as the
+    #: capture saw it: its shadow rays start at ``TraceSettings.t_min_objects`` (not saved).
+    edited: bool = False
     _static: bool = field(init=False, default=False)
 
     def __post_init__(self) -> None:
@@ -195,6 +198,36 @@ class SceneGraph:
         if self.occluders is None or self.occluders.num == 0:
             return st
         return Gaussians.cat([st, self.occluders.detach().to(st.dtype)])
+
+    def edited_nodes(self) -> frozenset[str]:
+        """Names of the nodes an object edit placed (:attr:`RigidNode.edited`)."""
+        return frozenset(n.name for n in self.nodes if n.edited)
+
+    def shadow_static_except(self, names: frozenset[str]) -> Gaussians:
+        """:meth:`shadow_static` without the static nodes in ``names`` (detached, not cached)."""
+        if not names:
+            return self.shadow_static()
+        parts = [self.background.detach()]
+        for n in self.nodes:
+            if n.is_static and n.name not in names:
+                q, t = n._key(0)
+                parts.append(transform_gaussians(n.gaussians, q, t).detach())
+        if self.occluders is not None and self.occluders.num:
+            parts.append(self.occluders.detach().to(self.background.dtype))
+        return Gaussians.cat(parts) if len(parts) > 1 else parts[0]
+
+    def nodes_at(self, time: float, names) -> Gaussians | None:
+        """World-space Gaussians of the nodes in ``names`` observed at ``time`` seconds, in node
+        order (static or not); None when none of them is."""
+        parts = []
+        for n in self.nodes:
+            if n.name in names:
+                qt = n.pose_at(time, self.times)
+                if qt is not None:
+                    parts.append(transform_gaussians(n.gaussians, *qt))
+        if not parts:
+            return None
+        return Gaussians.cat(parts) if len(parts) > 1 else parts[0]
 
     def invalidate(self) -> None:
         """Drop cached compositions (call after editing Gaussians in place)."""

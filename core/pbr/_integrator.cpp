@@ -11,19 +11,17 @@
 // formulas; tests compare expectations and the deterministic pieces exported below).
 //
 // The pieces live in the headers of native/: bvh.hpp (the BVH, here 8-wide: one AVX box test per
-// node, about half the node visits of the 4-wide one of _visibility.cpp), shadow.hpp (shadow rays
+// node, about half the node visits of the 4-wide one of trace4.hpp), shadow.hpp (shadow rays
 // with the 16-wide AVX-512 leaf test over SoA Gaussians), brdf.hpp, envmap.hpp, rng.hpp,
 // vis_cache.hpp, parallel.hpp and vec.hpp; this file holds the per-point estimator and the C
-// entry points.
+// entry points of both kernels.
 //
 // Units: world metres; radiance in the environment map's units; directions point away from the
 // surface. Plain C ABI (ctypes releases the GIL).
 
-// One shared object holds both kernels: the 4-wide shadow rays of core.pbr.visibility are compiled
-// with this file (one translation unit, so a process holding the sources' old layout in memory
-// still builds it).
-#include "_visibility.cpp"
-
+// One shared object holds both kernels: the 4-wide shadow rays of core.pbr.visibility
+// (native/trace4.hpp, entry points bv_* below) and the integrator (pi_*).
+#include "native/trace4.hpp"
 #include "native/shadow.hpp"
 #include "native/rng.hpp"
 #include "native/vec.hpp"
@@ -61,6 +59,7 @@ struct Params {
     float mis_min_brdf;         // > 0: per-point MIS split, BRDF share clamp(ps, this, 1/2)
     float roulette;             // > 0: shadow-ray Russian roulette below this x the running mean
     float cache_check;          // > 0: re-trace a cache hit with this probability (unbiased correction)
+    float tmin_own[kMaxBvhs];   // each BVH's tmin for points on an edited object (PointIn::on_object)
 };
 
 struct Light {
@@ -70,6 +69,7 @@ struct Light {
 struct PointIn {
     const float *pos, *nrm, *wo, *albedo, *rough, *metal, *weight, *bg, *depth;
     const int64_t* ids;  // random stream of each point (e.g. its pixel index), or null: the point index
+    const uint8_t* on_object;  // nullable: the point lies on an edited object (its BVHs use Params::tmin_own)
 };
 
 struct Counters {
@@ -86,9 +86,17 @@ inline float ldr_slope(float y, const Params& P) {
     return P.inv_gamma * std::pow(ey, P.inv_gamma - 1.f) * P.exposure;
 }
 
-void shade_point(int64_t i, const PointIn& in, const Env& env, const Bvh* bv, int nb, const TraceParams& tp,
+void shade_point(int64_t i, const PointIn& in, const Env& env, const Bvh* bv_in, int nb, const TraceParams& tp,
                  const Light* lights, int nl, const Params& P, const float* pool_dir, const float* pool_pdf,
                  const float* pool_rad, VisCache* cache, float* out, int32_t* used, Counters& cnt) {
+    // a point on an edited object traces the objects' BVH from the scene's t_min, not from the
+    // objects' own (their Gaussians would shadow their own surface)
+    Bvh own[kMaxBvhs];
+    const Bvh* bv = bv_in;
+    if (in.on_object && in.on_object[i]) {
+        for (int k = 0; k < nb; ++k) { own[k] = bv_in[k]; own[k].tmin = P.tmin_own[k]; }
+        bv = own;
+    }
     V3 n = normalize(load3(in.nrm + 3 * i));
     V3 wo = normalize(load3(in.wo + 3 * i));
     V3 x = load3(in.pos + 3 * i);
@@ -131,7 +139,7 @@ void shade_point(int64_t i, const PointIn& in, const Env& env, const Bvh* bv, in
         float o[3] = {org.x, org.y, org.z}, dd[3] = {wl.x, wl.y, wl.z};
         float V = 1.f;
         if (dot(wl, wl) > 0.5f) {
-            V = trace2(bv, nb, o, dd, tp.tmin, dist, tp, cnt.ts);
+            V = trace_bvhs(bv, nb, o, dd, dist, tp, cnt.ts);
             cnt.shadow_rays++;
         }
         for (int ch = 0; ch < 3; ++ch) acc[ch] += (double)L.radiant[ch] * att * f[ch] * c * V;
@@ -269,7 +277,7 @@ void shade_point(int64_t i, const PointIn& in, const Env& env, const Bvh* bv, in
                     // the cache holds the visibility through the static BVHs only (the first
                     // P.cache_bvhs); moving nodes are traced every time
                     if (V < 0.f) {
-                        V = trace2(bv, P.cache_bvhs, o, dd, tp.tmin, INFINITY, tp, cnt.ts);
+                        V = trace_bvhs(bv, P.cache_bvhs, o, dd, INFINITY, tp, cnt.ts);
                         cnt.shadow_rays++;
                         if (cv) cv->store((uint16_t)std::lround(clamp01(V) * kVisScale), std::memory_order_release);
                     } else if (P.cache_check > 0.f && rng.uniform() < P.cache_check) {
@@ -277,19 +285,19 @@ void shade_point(int64_t i, const PointIn& in, const Env& env, const Bvh* bv, in
                         // disagrees (a shadow edge crosses the cell in this direction) is retired
                         // so every later lookup traces: the cache keeps only the cell/direction
                         // pairs whose visibility is the same across the cell
-                        float Vt = trace2(bv, P.cache_bvhs, o, dd, tp.tmin, INFINITY, tp, cnt.ts);
+                        float Vt = trace_bvhs(bv, P.cache_bvhs, o, dd, INFINITY, tp, cnt.ts);
                         cnt.shadow_rays++;
                         cnt.cache_checks++;
                         if (std::fabs(Vt - V) > kCheckDisagree) cv->store(kAlwaysTrace, std::memory_order_release);
                         V = Vt;
                     }
                     if (nb > P.cache_bvhs && V >= tp.early_stop) {
-                        float Vd = trace2(bv + P.cache_bvhs, nb - P.cache_bvhs, o, dd, tp.tmin, INFINITY, tp, cnt.ts);
+                        float Vd = trace_bvhs(bv + P.cache_bvhs, nb - P.cache_bvhs, o, dd, INFINITY, tp, cnt.ts);
                         V *= Vd;
                         cnt.shadow_rays++;
                     }
                 } else {
-                    V = trace2(bv, nb, o, dd, tp.tmin, INFINITY, tp, cnt.ts);
+                    V = trace_bvhs(bv, nb, o, dd, INFINITY, tp, cnt.ts);
                     cnt.shadow_rays++;
                 }
                 for (int ch = 0; ch < 3; ++ch) bacc[ch] += (double)g[ch] * V * rr_w;
@@ -326,7 +334,50 @@ void shade_point(int64_t i, const PointIn& in, const Env& env, const Bvh* bv, in
 
 extern "C" {
 
-int pi_abi_version() { return 9; }
+int bv_abi_version() { return 2; }
+
+// Build the BVH over n boxes (lo, hi: [n, 3] float32): binary SAH build, collapsed to a 4-wide
+// BVH. perm_out: [n] int32 (Gaussian order in the leaves). nodes_out: capacity n + 1 Node4
+// (128 bytes each). Returns the Node4 count.
+// depth_out: the depth of the deepest leaf (root = 1).
+int64_t bv_build(const float* lo, const float* hi, int64_t n, int32_t leaf_size, int32_t* perm_out, void* nodes_out,
+                 int32_t* depth_out) {
+    return build_wide<4>(lo, hi, n, leaf_size, perm_out, nodes_out, depth_out);
+}
+
+// Trace nrays rays. origins, dirs: [nrays, 3] float32; tmax: [nrays] float32 or null (= inf).
+// gauss: [*, 16] float32 in leaf order. out: [nrays] float32. stats (nullable): int64[3] =
+// node visits, Gaussian tests, Gaussians counted.
+void bv_trace(const void* nodes_v, int64_t num_nodes, const float* gauss, const float* origins, const float* dirs,
+              const float* tmax, int64_t nrays, double tmin, double early_stop, double max_alpha, int32_t nthreads,
+              float* out, int64_t* stats) {
+    const Node4* nodes = static_cast<const Node4*>(nodes_v);
+    if (num_nodes <= 0) {
+        for (int64_t i = 0; i < nrays; ++i) out[i] = 1.0f;
+        if (stats) stats[0] = stats[1] = stats[2] = 0;
+        return;
+    }
+    int nt = std::max(1, (int)nthreads);
+    std::vector<Stats> st(nt);
+    parallel_chunks(nrays, 256, nt, [&](int tid, int64_t b, int64_t e) {
+        Stats& s = st[tid];
+        for (int64_t i = b; i < e; ++i) {
+            double o[3] = {origins[3 * i], origins[3 * i + 1], origins[3 * i + 2]};
+            double d[3] = {dirs[3 * i], dirs[3 * i + 1], dirs[3 * i + 2]};
+            double t1 = tmax ? (double)tmax[i] : INFINITY;
+            out[i] = t1 >= tmin ? trace_one(nodes, gauss, o, d, tmin, t1, early_stop, max_alpha, s) : 1.0f;
+        }
+    });
+    if (stats) {
+        stats[0] = stats[1] = stats[2] = 0;
+        for (auto& s : st) { stats[0] += s.nodes; stats[1] += s.tests; stats[2] += s.hits; }
+    }
+}
+
+// ------------------------------------------------------------------------------------------
+// the integrator
+// ------------------------------------------------------------------------------------------
+int pi_abi_version() { return 10; }
 
 // Alias table (Vose) of n probabilities (float64, sum > 0): aprob [n] float32, aidx [n] int32
 // (the caller interleaves them into the kernel's [n, 2] alias records).
@@ -383,16 +434,18 @@ void pi_cache_free(void* p) {
     delete c;
 }
 
-// Shadow rays through up to 2 BVHs with the SIMD leaf test (for tests / benchmarks).
-// bvh_nodes[2], bvh_num[2], bvh_soa[2], bvh_npad[2]; out [nrays]; stats int64[3]
+// Shadow rays through up to 3 BVHs with the SIMD leaf test (for tests / benchmarks).
+// bvh_nodes[3], bvh_num[3], bvh_soa[3], bvh_npad[3], bvh_tmin[3] (each BVH's minimum ray
+// distance); out [nrays]; stats int64[3]
 void pi_trace(const void* const* bvh_nodes, const int64_t* bvh_num, const float* const* bvh_soa,
-              const int64_t* bvh_npad, int32_t nbvh, const float* origins, const float* dirs, const float* tmax,
-              int64_t nrays, float tmin, float early_stop, float max_alpha, int32_t nthreads, float* out,
+              const int64_t* bvh_npad, const float* bvh_tmin, int32_t nbvh, const float* origins, const float* dirs,
+              const float* tmax, int64_t nrays, float early_stop, float max_alpha, int32_t nthreads, float* out,
               int64_t* stats) {
-    Bvh bv[2];
-    int nb = std::min(2, (int)nbvh);
-    for (int k = 0; k < nb; ++k) bv[k] = {static_cast<const Node8*>(bvh_nodes[k]), bvh_num[k], bvh_soa[k], bvh_npad[k]};
-    TraceParams tp{tmin, early_stop, max_alpha};
+    Bvh bv[kMaxBvhs];
+    int nb = std::max(0, std::min(kMaxBvhs, (int)nbvh));
+    for (int k = 0; k < nb; ++k)
+        bv[k] = {static_cast<const Node8*>(bvh_nodes[k]), bvh_num[k], bvh_soa[k], bvh_npad[k], bvh_tmin[k]};
+    TraceParams tp{early_stop, max_alpha};
     int nt = std::max(1, (int)nthreads);
     std::vector<TStats> st(nt);
     parallel_chunks(nrays, 256, nt, [&](int tid, int64_t b0, int64_t e0) {
@@ -401,7 +454,7 @@ void pi_trace(const void* const* bvh_nodes, const int64_t* bvh_num, const float*
             V3 d = normalize(load3(dirs + 3 * i));
             float dd[3] = {d.x, d.y, d.z};
             float t1 = tmax ? tmax[i] : INFINITY;
-            out[i] = dot(d, d) > 0.5f ? trace2(bv, nb, o, dd, tmin, t1, tp, st[tid]) : 1.f;
+            out[i] = dot(d, d) > 0.5f ? trace_bvhs(bv, nb, o, dd, t1, tp, st[tid]) : 1.f;
         }
     });
     if (stats) {
@@ -449,12 +502,16 @@ void pi_env_sample(int32_t H, int32_t W, const float* tex, const float* alias, c
 // (luminance of (1 - O) E(wo), for the adaptive criterion), depth (camera z, for cache cells) [P];
 // ids [P] int64 (nullable): the random stream of each point (its pixel index: a pixel gets the same
 // samples whichever subset of pixels is shaded).
-// iparams int64[9]: n_env, n_brdf, batch, adapt_min_batches, cull_lights, pool_size, threads, nbvh,
-//   cache_bvhs (leading BVHs whose visibility the cache may hold: the static ones)
+// iparams int64[9]: n_env, n_brdf, batch, adapt_min_batches, cull_lights, pool_size, threads, nbvh
+//   (<= 3), cache_bvhs (leading BVHs whose visibility the cache may hold: the static ones)
 // fparams float64[14]: adapt_tol, exposure, inv_gamma, normal_offset, specular, cache_cell_px,
-//   inv_fx, tmin, early_stop, max_alpha, seed, mis_min_brdf (> 0: per-point env/BRDF split),
+//   inv_fx, tmin (every BVH's minimum ray distance when bvh_tmin is null), early_stop, max_alpha,
+//   seed, mis_min_brdf (> 0: per-point env/BRDF split),
 //   roulette (> 0: shadow-ray Russian roulette threshold, x the point's running mean contribution),
 //   cache_check (> 0: probability of re-tracing a cache hit, unbiased correction)
+// bvh_nodes, bvh_num, bvh_soa, bvh_npad, bvh_tmin (nullable): [nbvh] each, bvh_tmin the minimum
+//   ray distance of each BVH (metres); bvh_tmin_own (nullable): [nbvh], the minimum distance of
+//   each BVH for the points that lie on an edited object (on_object [P] uint8, nullable)
 // lights: [L, 16] float32 (pos3 axis3 radiant3 cos_inner cos_outer range spot pad3)
 // env: H, W, rad, pdf, aprob, aidx, cos_edge, rot_rad, black
 // out [P, 3] (L_r, not weighted by O), used [P] int32 samples spent; counters int64[10].
@@ -462,7 +519,8 @@ void pi_render(const float* pos, const float* nrm, const float* wo, const float*
                const float* metal, const float* weight, const float* bg, const float* depth, const int64_t* ids,
                int64_t npts,
                const int64_t* iparams, const double* fparams, const void* const* bvh_nodes, const int64_t* bvh_num,
-               const float* const* bvh_soa, const int64_t* bvh_npad, const float* lights, int32_t nlights,
+               const float* const* bvh_soa, const int64_t* bvh_npad, const float* bvh_tmin,
+               const float* bvh_tmin_own, const uint8_t* on_object, const float* lights, int32_t nlights,
                int32_t H, int32_t W, const float* tex, const float* alias, const float* cos_edge, float rot_rad,
                int32_t black, const float* pool_dir, const float* pool_pdf,
                const float* pool_rad, void* cache, float* out, int32_t* used, int64_t* counters) {
@@ -474,7 +532,7 @@ void pi_render(const float* pos, const float* nrm, const float* wo, const float*
     P.cull_lights = (int)iparams[4];
     P.pool_size = (int)std::max<int64_t>(1, iparams[5]);
     int nthreads = (int)std::max<int64_t>(1, iparams[6]);
-    int nb = (int)std::min<int64_t>(2, iparams[7]);
+    int nb = (int)std::max<int64_t>(0, std::min<int64_t>(kMaxBvhs, iparams[7]));
     P.cache_bvhs = (int)std::min<int64_t>(nb, std::max<int64_t>(0, iparams[8]));
     P.adapt_tol = (float)fparams[0];
     P.exposure = (float)fparams[1];
@@ -483,13 +541,16 @@ void pi_render(const float* pos, const float* nrm, const float* wo, const float*
     P.specular = (float)fparams[4];
     P.cache_cell_px = (float)fparams[5];
     P.inv_fx = (float)fparams[6];
-    TraceParams tp{(float)fparams[7], (float)fparams[8], (float)fparams[9]};
+    const float tmin_all = (float)fparams[7];
+    TraceParams tp{(float)fparams[8], (float)fparams[9]};
     P.seed = (uint64_t)fparams[10];
     P.mis_min_brdf = (float)fparams[11];
     P.roulette = (float)fparams[12];
     P.cache_check = (float)fparams[13];
-    Bvh bv[2];
-    for (int k = 0; k < nb; ++k) bv[k] = {static_cast<const Node8*>(bvh_nodes[k]), bvh_num[k], bvh_soa[k], bvh_npad[k]};
+    Bvh bv[kMaxBvhs];
+    for (int k = 0; k < nb; ++k)
+        bv[k] = {static_cast<const Node8*>(bvh_nodes[k]), bvh_num[k], bvh_soa[k], bvh_npad[k],
+                 bvh_tmin ? bvh_tmin[k] : tmin_all};
     Env env{H, W, tex, alias, cos_edge, std::cos(rot_rad), std::sin(rot_rad), black != 0};
     std::vector<Light> L(nlights);
     for (int l = 0; l < nlights; ++l) {
@@ -498,7 +559,8 @@ void pi_render(const float* pos, const float* nrm, const float* wo, const float*
         for (int c = 0; c < 3; ++c) { x.pos[c] = q[c]; x.axis[c] = q[3 + c]; x.radiant[c] = q[6 + c]; }
         x.cos_inner = q[9]; x.cos_outer = q[10]; x.range = q[11]; x.spot = q[12];
     }
-    PointIn in{pos, nrm, wo, albedo, rough, metal, weight, bg, depth, ids};
+    for (int k = 0; k < nb; ++k) P.tmin_own[k] = bvh_tmin_own ? bvh_tmin_own[k] : bv[k].tmin;
+    PointIn in{pos, nrm, wo, albedo, rough, metal, weight, bg, depth, ids, on_object};
     VisCache* vc = static_cast<VisCache*>(cache);
     std::vector<Counters> cs(nthreads);
     parallel_chunks(npts, 32, nthreads, [&](int tid, int64_t b0, int64_t e0) {

@@ -1,9 +1,10 @@
-"""Build (once, cached) and load the PBR kernels via ctypes: the shadow-ray BVH kernels of
-``_visibility.cpp`` and the fused integrator of ``_integrator.cpp`` (which ``#include``s the former,
-so both live in one shared object). Their shared pieces are the headers of ``native/``: the BVH
-(``bvh.hpp``, one template over the node width: 4-wide for ``_visibility.cpp``, 8-wide for the
-integrator), and the integrator's shadow rays, BRDF, environment map, random numbers, visibility
-cache and work sharing.
+"""Build (once, cached) and load the PBR kernels via ctypes: one shared object, ``_integrator.cpp``,
+holds the C entry points of both the 4-wide shadow-ray BVH of :mod:`core.pbr.visibility`
+(``bv_*``, kernel in ``native/trace4.hpp``) and the fused integrator (``pi_*``). The pieces are
+the headers of ``native/``: the BVH (``bvh.hpp``, one template over the node width: 4-wide for
+``trace4.hpp``, 8-wide for the integrator), and the integrator's shadow rays (``shadow.hpp``: up
+to three BVHs, each with its own minimum ray distance), BRDF, environment map, random numbers,
+visibility cache and work sharing.
 
 Why C++ (as the rasterizer, :mod:`core.raster._native`): Warp's CPU backend runs a launch as one
 serial loop with no control over the memory layout or SIMD; a BVH traversal with a per-ray stack,
@@ -24,12 +25,15 @@ from pathlib import Path
 from core.native_build import NativeLibrary
 
 _DIR = Path(__file__).parent
-#: The compiled source; it includes ``_visibility.cpp`` and the ``native/`` headers, which the
-#: build finds and hashes into the cache key.
+#: The compiled source; it includes the ``native/`` headers, which the build finds and hashes
+#: into the cache key.
 _SRC = _DIR / "_integrator.cpp"
 #: ABI of the shadow-ray entry points (``bv_abi_version``) and of the integrator (``pi_abi_version``).
 _ABI_VERSION = 2
-_PI_ABI_VERSION = 9
+_PI_ABI_VERSION = 10
+#: Most BVHs a shadow ray of the integrator goes through (``kMaxBvhs`` of native/shadow.hpp): the
+#: static scene, moving nodes and edited objects.
+MAX_BVHS = 3
 #: Size in bytes of one 4-wide BVH node in the kernel (must match ``WideNode<4>`` of native/bvh.hpp).
 NODE_BYTES = 128
 #: Size in bytes of one 8-wide BVH node of the integrator (must match ``WideNode<8>``).
@@ -64,7 +68,7 @@ def _declare(lib: ctypes.CDLL) -> None:
     lib.pi_cache_size.restype = i64
     lib.pi_cache_free.argtypes = [p]
     lib.pi_cache_free.restype = None
-    lib.pi_trace.argtypes = [p, p, p, p, i32, p, p, p, i64, f32, f32, f32, i32, p, p]
+    lib.pi_trace.argtypes = [p, p, p, p, p, i32, p, p, p, i64, f32, f32, i32, p, p]
     lib.pi_trace.restype = None
     lib.pi_eval.argtypes = [p, p, p, p, p, p, f32, i64, p, p]
     lib.pi_eval.restype = None
@@ -72,7 +76,7 @@ def _declare(lib: ctypes.CDLL) -> None:
     lib.pi_env_eval.restype = None
     lib.pi_env_sample.argtypes = [i32, i32, p, p, p, f32, i32, u64, i64, p, p, p]
     lib.pi_env_sample.restype = None
-    lib.pi_render.argtypes = ([p] * 10 + [i64, p, p, p, p, p, p, p, i32, i32, i32] + [p] * 3
+    lib.pi_render.argtypes = ([p] * 10 + [i64, p, p, p, p, p, p, p, p, p, p, i32, i32, i32] + [p] * 3
                               + [f32, i32, p, p, p, p, p, p, p])
     lib.pi_render.restype = None
 

@@ -1,5 +1,6 @@
 """Python side of the fused C++ integrator (``_integrator.cpp``): environment tables, the SIMD
-shadow-ray tracer over one or two BVHs, the cross-frame visibility cache, and :func:`integrate`.
+shadow-ray tracer over one to three BVHs (each with its own t_min), the cross-frame visibility
+cache, and :func:`integrate`.
 
 The integrator computes, for a batch of shading points, exactly the estimator of
 :func:`core.pbr.mis.estimate_reflected` (environment / BRDF / MIS sampling, power heuristic)
@@ -113,20 +114,31 @@ class NativeEnv:
 
 def _bvh_arrays(tracers):
     tracers = [t for t in tracers if t is not None]
-    if len(tracers) > 2:
-        raise ConfigError("tracers: at most two BVHs (static and dynamic)")
+    k = _native.MAX_BVHS
+    if len(tracers) > k:
+        raise ConfigError(f"tracers: at most {k} BVHs (static, dynamic, edited objects)")
     handles = [t.native_handle() for t in tracers]
-    nodes = (ctypes.c_void_p * 2)(*[h[0] for h in handles] + [0] * (2 - len(handles)))
-    nums = (ctypes.c_int64 * 2)(*[h[1] for h in handles] + [0] * (2 - len(handles)))
-    soas = (ctypes.c_void_p * 2)(*[h[2] for h in handles] + [0] * (2 - len(handles)))
-    npads = (ctypes.c_int64 * 2)(*[h[3] for h in handles] + [0] * (2 - len(handles)))
-    return nodes, nums, soas, npads, len(handles)
+    pad = [0] * (k - len(handles))
+    nodes = (ctypes.c_void_p * k)(*[h[0] for h in handles] + pad)
+    nums = (ctypes.c_int64 * k)(*[h[1] for h in handles] + pad)
+    soas = (ctypes.c_void_p * k)(*[h[2] for h in handles] + pad)
+    npads = (ctypes.c_int64 * k)(*[h[3] for h in handles] + pad)
+    tmins = (ctypes.c_float * k)(*[float(t.t_min) for t in tracers] + pad)  # each tracer's own
+    return nodes, nums, soas, npads, tmins, len(handles)
+
+
+def _bvh_tmin_own(tracers):
+    """Each tracer's minimum distance for rays from a point on an edited object."""
+    tracers = [t for t in tracers if t is not None]
+    return (ctypes.c_float * _native.MAX_BVHS)(*[float(t.t_min_on_objects) for t in tracers]
+                                               + [0] * (_native.MAX_BVHS - len(tracers)))
 
 
 def trace_simd(tracers, origins, dirs, t_max=None, *, threads: int = 0) -> tuple[np.ndarray, dict]:
-    """Visibility ``[m]`` (float32) of rays through the product of one or two
+    """Visibility ``[m]`` (float32) of rays through the product of one to three
     :class:`core.pbr.visibility.GaussianTracer` BVHs with the kernel's SIMD leaf test (the
-    integrator's shadow rays). Settings (t_min, early stop, max alpha) from the first tracer."""
+    integrator's shadow rays). Each BVH from its tracer's ``t_min``; early stop and max alpha
+    from the first tracer's settings."""
     from core.pbr.visibility import default_threads
 
     o = _np(origins).reshape(-1, 3)
@@ -135,9 +147,9 @@ def trace_simd(tracers, origins, dirs, t_max=None, *, threads: int = 0) -> tuple
     out = np.empty(len(o), np.float32)
     stats = np.zeros(3, np.int64)
     s = [t for t in tracers if t is not None][0].settings
-    nodes, nums, soas, npads, nb = _bvh_arrays(tracers)
-    _native.lib().pi_trace(nodes, nums, soas, npads, nb, o.ctypes.data, d.ctypes.data,
-                           None if tm is None else tm.ctypes.data, len(o), s.t_min, s.early_stop, s.max_alpha,
+    nodes, nums, soas, npads, tmins, nb = _bvh_arrays(tracers)
+    _native.lib().pi_trace(nodes, nums, soas, npads, tmins, nb, o.ctypes.data, d.ctypes.data,
+                           None if tm is None else tm.ctypes.data, len(o), s.early_stop, s.max_alpha,
                            int(threads or default_threads()), out.ctypes.data, stats.ctypes.data)
     return out, {"rays": int(stats[0]), "node_visits": int(stats[1]), "leaf_visits": int(stats[2])}
 
@@ -208,15 +220,18 @@ def integrate(points, normals, wo, albedo, roughness, metallic, env: NativeEnv, 
               gamma: float = 2.2, weight=None, background_lum=None, depth=None, cull_lights: bool = True,
               cache: VisibilityCache | None = None, fx: float = 1.0, threads: int = 0,
               ids=None, cache_bvhs: int | None = None, mis_min_brdf: float = 0.0,
-              roulette: float = 0.0, cache_check: float = 0.0) -> IntegratorOutput:
+              roulette: float = 0.0, cache_check: float = 0.0, on_object=None) -> IntegratorOutput:
     """Run the fused kernel on ``P`` shading points (world frame, metres; see the module
     docstring). ``normals`` are used as given (face them toward the viewer first); ``lights`` is
-    a :class:`core.pbr.lights.LightSet` or None; ``tracers`` up to two
-    :class:`core.pbr.visibility.GaussianTracer` (visibility is their product; none = all
-    visible). ``weight`` (opacity) and ``background_lum`` (luminance of ``(1-O) E(wo)``) only
-    feed the adaptive criterion; ``depth`` (camera z) and ``fx`` only the cache cells; ``ids``
-    (int, ``[P]``) selects each point's random stream (pass pixel indices so a pixel draws the
-    same samples whichever subset is shaded; default: the point's index); ``cache_bvhs``: how
+    a :class:`core.pbr.lights.LightSet` or None; ``tracers`` up to three
+    :class:`core.pbr.visibility.GaussianTracer` (visibility is their product, each traced from
+    its own ``t_min``; none = all visible); ``on_object`` (bool ``[P]``): points on the surface of
+    an edited object, whose rays cross every tracer from its ``t_min_on_objects``, so an object
+    tracer's small ``t_min`` darkens what the object shadows, not the object itself. ``weight``
+    (opacity) and ``background_lum`` (luminance of ``(1-O) E(wo)``) only feed the adaptive
+    criterion; ``depth`` (camera z) and ``fx`` only the cache cells; ``ids`` (int, ``[P]``)
+    selects each point's random stream (pass pixel indices so a pixel draws the same samples
+    whichever subset is shaded; default: the point's index); ``cache_bvhs``: how
     many leading ``tracers`` are static (their visibility may be cached; the others, moving
     nodes, are traced every time; default all of them); ``mis_min_brdf`` > 0 (with both sample
     kinds): each point splits its ``n_env + n_brdf`` samples itself, a BRDF share of
@@ -247,7 +262,13 @@ def integrate(points, normals, wo, albedo, roughness, metallic, env: NativeEnv, 
             raise ConfigError(f"ids: has {ids.shape[0]} rows, points has {p}")
     tr = [t for t in tracers if t is not None]
     ts = tr[0].settings if tr else TraceSettings()
-    nodes, nums, soas, npads, nb = _bvh_arrays(tr)
+    nodes, nums, soas, npads, tmins, nb = _bvh_arrays(tr)
+    own = None
+    if on_object is not None:
+        own = np.ascontiguousarray(on_object.numpy() if isinstance(on_object, torch.Tensor) else on_object,
+                                   dtype=np.uint8).reshape(-1)
+        if own.shape[0] != p:
+            raise ConfigError(f"on_object: has {own.shape[0]} rows, points has {p}")
     nthreads = int(threads or default_threads())
     lrec = np.zeros((0, _native.LIGHT_FLOATS), np.float32)
     if lights is not None and len(lights):
@@ -265,6 +286,7 @@ def integrate(points, normals, wo, albedo, roughness, metallic, env: NativeEnv, 
         cache_bvhs = nb
     iparams = np.array([n_env, n_brdf, max(1, min(batch, 1 << 30)), adapt_min_batches, int(bool(cull_lights)),
                         cache.pool_size if cache else 1, nthreads, nb, int(cache_bvhs)], np.int64)
+    # fparams' t_min is unused (each BVH has its own, tmins)
     fparams = np.array([adapt_tol, exposure, 1.0 / gamma, normal_offset, specular,
                         cache.cell_px if cache else 0.0, 1.0 / fx, ts.t_min, ts.early_stop, ts.max_alpha,
                         float(int(seed) % (2 ** 52)), float(mis_min_brdf), float(roulette),
@@ -277,7 +299,8 @@ def integrate(points, normals, wo, albedo, roughness, metallic, env: NativeEnv, 
             pos.ctypes.data, nrm.ctypes.data, wo_.ctypes.data, alb.ctypes.data, rough.ctypes.data, metal.ctypes.data,
             wgt.ctypes.data, bg.ctypes.data, dep.ctypes.data, None if ids is None else ids.ctypes.data, p,
             iparams.ctypes.data, fparams.ctypes.data,
-            nodes, nums, soas, npads, lrec.ctypes.data, len(lrec), *env.args(),
+            nodes, nums, soas, npads, tmins, _bvh_tmin_own(tr), None if own is None else own.ctypes.data,
+            lrec.ctypes.data, len(lrec), *env.args(),
             cache.pool_dir.ctypes.data if cache else None, cache.pool_pdf.ctypes.data if cache else None,
             cache.pool_rad.ctypes.data if cache else None, cache._ptr if cache else None,
             out.ctypes.data, used.ctypes.data, counters.ctypes.data)

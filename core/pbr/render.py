@@ -35,7 +35,10 @@ Clips: :class:`ClipRenderer` renders frames of a :class:`core.scene_graph.SceneG
 fixed set of Gaussians) along a camera path: the shadow-ray BVH of the background and static
 nodes is built once (only moving nodes get a per-frame BVH; visibility is the product of both),
 the environment tables once, and with ``reuse_visibility`` a :class:`VisibilityCache` carries
-environment visibility across frames.
+environment visibility across frames. When ``TraceSettings.t_min_objects`` differs from
+``t_min``, the nodes an object edit placed (:attr:`core.scene_graph.RigidNode.edited`) leave
+those BVHs for a per-frame third one traced from ``t_min_objects``; a scene without edits
+renders as before, to the bit.
 """
 
 from __future__ import annotations
@@ -177,6 +180,29 @@ class PBRSettings:
         return (n + 1) // 2, n // 2
 
 
+#: Margin (metres) of an edited object's box within which a shading point lies on the object.
+OBJECT_MARGIN_M = 0.1
+#: The lowest part of an edited object's box (metres) whose points are not on the object: the
+#: road under and beside it, which must keep the object's contact shadow.
+OBJECT_FLOOR_M = 0.15
+
+
+def on_objects(points: torch.Tensor, boxes) -> torch.Tensor:
+    """Bool ``[P]``: the points (world, metres) inside one of ``boxes`` (``(obj_to_world [4, 4],
+    (l, w, h))``, the box centred on the object frame's origin) grown by ``OBJECT_MARGIN_M``,
+    and above its lowest ``OBJECT_FLOOR_M`` (or its lower half, when thinner)."""
+    out = torch.zeros(points.shape[0], dtype=torch.bool)
+    p = points.detach().to(torch.float64)
+    for pose, size in boxes:
+        m = torch.as_tensor(np.asarray(pose, np.float64))
+        q = (p - m[:3, 3]) @ m[:3, :3]  # object frame
+        half = torch.as_tensor(np.asarray(size, np.float64)) / 2.0
+        floor = min(OBJECT_FLOOR_M, float(half[2]))  # an object thinner than that: its upper half
+        inside = (q.abs() <= half + OBJECT_MARGIN_M).all(-1) & (q[:, 2] > -half[2] + floor)
+        out |= inside
+    return out
+
+
 @dataclass
 class ShadingInputs:
     """Per-pixel shading inputs ``[H*W, C]`` (torch, flattened row-major) from the G-buffers."""
@@ -280,20 +306,25 @@ class FrameContext:
 
 def render_pbr(gbuf, camera, env: EnvironmentMap, *, settings: PBRSettings | None = None, tracers=(),
                lights=None, pixels: torch.Tensor | None = None, context: FrameContext | None = None,
-               frame_index: int = 0, generator: torch.Generator | None = None) -> PBRResult:
+               frame_index: int = 0, generator: torch.Generator | None = None, object_boxes=()) -> PBRResult:
     """The PBR pass on G-buffers (see the module docstring).
 
     Args:
         gbuf: :class:`core.raster.RasterOutput` (or a dict of accumulated ``[H, W, C]`` layers).
         camera: :class:`Camera` (or any object with its attributes).
         env: the environment map (its radiance and sampling tables).
-        tracers: up to two :class:`GaussianTracer` (visibility = their product); with a
+        tracers: up to three :class:`GaussianTracer` in all with the ``context``'s static one
+            (visibility = their product, each BVH traced from its own ``t_min``); with a
             ``context``, its static tracer is used in addition. Empty = everything visible.
         lights: a :class:`core.pbr.lights.LightSet` (world frame) or None.
         pixels: flat pixel indices to shade (training subset); the result tensors are then
             ``[K, 3]``. Sky pixels in the subset get ``(1 - O) E(d)`` as everywhere.
         context: a :class:`FrameContext` to reuse tables / static BVH / cache across frames.
         frame_index: added to the seed (clips).
+        object_boxes: ``(obj_to_world [4, 4], (l, w, h))`` of each edited object (native
+            backend): a shading point inside one, above its lowest ``OBJECT_FLOOR_M`` (the road
+            under it stays out), lies on the object, and its shadow rays cross an objects' tracer
+            from the scene's ``t_min``, so the object's own Gaussians do not shadow its surface.
         generator: torch generator of the torch backend.
     """
     s = settings or PBRSettings()
@@ -313,8 +344,8 @@ def render_pbr(gbuf, camera, env: EnvironmentMap, *, settings: PBRSettings | Non
     shade = (o[:, 0] >= s.sky_opacity) if s.skip_sky else torch.ones(o.shape[0], dtype=torch.bool)
     sel = all_idx[shade]
     tr = [t for t in ((context.static_tracer if context else None), *tracers) if t is not None] if s.shadows else []
-    if len(tr) > 2:
-        raise ConfigError("tracers: at most two BVHs in total (static + dynamic)")
+    if len(tr) > 3:
+        raise ConfigError("tracers: at most three BVHs in total (static, dynamic, edited objects)")
     timings["setup"] = time.perf_counter() - t0
     t1 = time.perf_counter()
     n_env, n_brdf = s.split
@@ -336,7 +367,8 @@ def render_pbr(gbuf, camera, env: EnvironmentMap, *, settings: PBRSettings | Non
                         weight=si.opacity[sel, 0], background_lum=bg, depth=si.depth[sel, 0],
                         cull_lights=s.cull_lights, cache=context.cache if context else None, fx=cam.fx,
                         threads=s.threads, ids=sel, roulette=s.roulette, cache_check=s.cache_check,
-                        cache_bvhs=1 if (tr and context is not None and context.static_tracer is not None) else 0)
+                        cache_bvhs=1 if (tr and context is not None and context.static_tracer is not None) else 0,
+                        on_object=on_objects(si.points[sel], object_boxes) if object_boxes and tr else None)
         lr_sel = torch.from_numpy(res.radiance).to(dt)
         samples[shade] = torch.from_numpy(res.samples)
         counters.update(res.counters)
@@ -538,9 +570,14 @@ class ClipRenderer:
         else:
             raise ConfigError(f"scene: expected a SceneGraph or Gaussians, got {type(scene).__name__}")
         t0 = time.perf_counter()
+        # edited objects (inserted or moved) get a BVH of their own, traced from t_min_objects, when
+        # that differs from t_min (otherwise nothing changes: same BVHs as without the option)
+        ts = self.settings.trace
+        self.objects = (self.graph.edited_nodes() if self.graph is not None and self.settings.shadows
+                        and ts.t_min_objects is not None and ts.t_min_objects != ts.t_min else frozenset())
         # static shadow casters: the static part plus the graph's shadow-only occluders
-        shadow_static = (self.graph.shadow_static() if self.graph is not None else self.static) if self.static_reuse \
-            else None
+        shadow_static = (self.graph.shadow_static_except(self.objects) if self.graph is not None else self.static) \
+            if self.static_reuse else None
         self.hook = _clip_hook.get()
         self.context = (self.hook.context(env, self.settings, shadow_static) if self.hook is not None
                         else FrameContext(env, self.settings, static_gaussians=shadow_static))
@@ -559,9 +596,22 @@ class ClipRenderer:
             else:
                 g = self.static
                 poses = {}
-            dyn = None
+            dyn = obj = None
             if not self.settings.shadows:
                 pass  # every light sample is visible: no BVH
+            elif self.objects:
+                obj_g = self.graph.nodes_at(float(time_s), self.objects)
+                if obj_g is not None:
+                    obj = GaussianTracer.from_gaussians(obj_g, self.settings.trace, objects=True)
+                if self.static_reuse:
+                    movers = [n.name for n in self.graph.nodes if not n.is_static and n.name not in self.objects]
+                    mov_g = self.graph.nodes_at(float(time_s), movers)
+                else:
+                    occ = self.graph.occluders
+                    rest = self.graph.compose(float(time_s), hidden=self.objects).detach()
+                    mov_g = Gaussians.cat([rest, occ.detach().to(rest.dtype)]) if occ is not None and occ.num else rest
+                if mov_g is not None and mov_g.num:
+                    dyn = GaussianTracer.from_gaussians(mov_g, self.settings.trace)
             elif self.static_reuse:
                 n_static = self.static.num if self.static is not None else 0
                 if g.num > n_static:
@@ -574,8 +624,11 @@ class ClipRenderer:
             out = rasterize_gaussians(g, cam, settings=self.raster_settings)
             t_raster = time.perf_counter() - t0 - t_bvh
             ls = lights_to_world(self.lights, poses) if self.lights else None
-            res = render_pbr(out, cam, self.env, settings=self.settings, tracers=[dyn] if dyn else [], lights=ls,
-                             context=self.context, frame_index=frame_index)
+            boxes = [(poses[n.name].numpy(), n.size) for n in self.graph.nodes
+                     if n.name in self.objects and n.name in poses and n.size is not None] if obj else []
+            res = render_pbr(out, cam, self.env, settings=self.settings, tracers=[t for t in (dyn, obj) if t],
+                             lights=ls,
+                             context=self.context, frame_index=frame_index, object_boxes=boxes)
         res.timings["bvh"] = t_bvh
         res.timings["raster"] = t_raster
         res.timings["total"] = time.perf_counter() - t0

@@ -9,7 +9,10 @@ i.e. each Gaussian's *maximum response along the ray* (3DGRT, Moenne-Loccoz et a
 the maximising ``t`` clamped to the ray segment. ``t_min`` (metres) offsets the start of every
 ray so a surface does not shadow itself: a flat Gaussian on which the ray starts is left behind
 once ``t_min cos(theta) >> its thickness``. ``t_max`` is +inf for the environment and the
-distance to the light for a local light.
+distance to the light for a local light. A tracer built with ``objects=True`` (the Gaussians of
+objects a relight inserted or moved, traced as a BVH of their own) starts its rays at
+``TraceSettings.t_min_objects`` instead, so an inserted car keeps its contact shadow while the
+reconstructed road keeps the larger ``t_min`` that stops it shadowing itself.
 
 Truncation (the same rule in the kernel and in the reference, so they agree exactly): a Gaussian
 counts only where ``o_k g_k >= alpha_min``, and never beyond ``cutoff_sigma`` standard
@@ -27,7 +30,7 @@ Differentiability: none. Visibility is returned detached (geometry is frozen in 
 which differentiates with respect to the environment map and materials; the kernel has no
 backward pass).
 
-Kernel: C++ (``_visibility.cpp``, built and cached by :mod:`core.pbr._native`, the same build
+Kernel: C++ (``native/trace4.hpp``, built and cached by :mod:`core.pbr._native`, the same build
 approach as the rasterizer's): a binned-SAH binary BVH collapsed to a 4-wide BVH with SSE box
 tests; one call spreads the rays over ``std::thread`` workers (one per core). Build: ~0.1-0.2 s
 for 50k Gaussians. Throughput on these 2-core machines (synthetic street, 50k flat Gaussians,
@@ -59,7 +62,12 @@ class TraceSettings:
     """How shadow rays are traced. Lengths in metres."""
 
     t_min: float = 1e-2
-    """Ray start offset (self-shadowing guard)."""
+    """Ray start offset (self-shadowing guard), metres."""
+    t_min_objects: float | None = None
+    """Ray start offset through the Gaussians of a tracer built with ``objects=True`` (the
+    objects a relight inserted or moved: :attr:`core.render.scenario.Scenario.object_shadow_t_min_m`),
+    metres; None = ``t_min``. Each BVH of the integrator has its own offset, so a small one here
+    keeps an object's contact shadow without letting the rest of the scene shadow itself."""
     early_stop: float = 1e-3
     """Stop a ray once V drops below this (0 disables early stopping)."""
     max_alpha: float = 0.99
@@ -83,6 +91,8 @@ class TraceSettings:
                 raise ConfigError(f"{name}: must be a finite number in {'(' if lo_open else '['}{lo}, {hi}], got {v!r}")
 
         num("t_min", 0.0, 1e3)
+        if self.t_min_objects is not None:
+            num("t_min_objects", 0.0, 1e3)
         num("early_stop", 0.0, 1.0)
         num("max_alpha", 0.0, 1.0, lo_open=True)
         num("alpha_min", 0.0, 1.0, lo_open=True)
@@ -92,6 +102,13 @@ class TraceSettings:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < lo or v > 4096:
                 raise ConfigError(f"{name}: must be an int in [{lo}, 4096], got {v!r}")
+
+
+def _t_min(settings: TraceSettings, objects: bool) -> float:
+    """The minimum ray distance of a tracer (``objects``: of edited objects)."""
+    if objects and settings.t_min_objects is not None:
+        return float(settings.t_min_objects)
+    return float(settings.t_min)
 
 
 def _check(x, name: str, width: int | None) -> torch.Tensor:
@@ -159,14 +176,24 @@ def _rays(origins, dirs, t_max):
 class GaussianTracer:
     """BVH over Gaussians for shadow rays; call it as ``visibility(origins, dirs, t_max=None)``.
 
-    Args: as :func:`prepare_gaussians`, plus ``settings``. The BVH is built once here (C++,
-    ~20 ms for 50k Gaussians); build a new tracer when the Gaussians move.
+    Args: as :func:`prepare_gaussians`, plus ``settings`` and ``objects`` (these Gaussians are
+    edited objects: rays start at ``settings.t_min_objects``, see :attr:`t_min`). The BVH is built
+    once here (C++, ~20 ms for 50k Gaussians); build a new tracer when the Gaussians move.
     """
 
-    def __init__(self, means, quats, scales, opacities, settings: TraceSettings | None = None):
+    def __init__(self, means, quats, scales, opacities, settings: TraceSettings | None = None, *,
+                 objects: bool = False):
         from core.pbr import _native
 
         self.settings = settings or TraceSettings()
+        self.objects = bool(objects)
+        #: Minimum ray distance through these Gaussians, metres: ``settings.t_min``, or
+        #: ``settings.t_min_objects`` (when set) for a tracer of edited objects.
+        self.t_min = _t_min(self.settings, self.objects)
+        #: Minimum ray distance through these Gaussians for rays that start on an edited object's
+        #: own surface (the integrator's ``on_object`` points): ``settings.t_min`` (an object's
+        #: Gaussians must not shadow its own surface).
+        self.t_min_on_objects = float(self.settings.t_min)
         prep = prepare_gaussians(means, quats, scales, opacities, self.settings, torch.float64)
         k = int(prep["mu"].shape[0])
         self.num_gaussians = int(means.shape[0])
@@ -213,11 +240,12 @@ class GaussianTracer:
         self.last_stats: dict[str, int] = {}
 
     @classmethod
-    def from_gaussians(cls, gaussians, settings: TraceSettings | None = None) -> "GaussianTracer":
+    def from_gaussians(cls, gaussians, settings: TraceSettings | None = None, *,
+                       objects: bool = False) -> "GaussianTracer":
         """Build from a :class:`core.gaussians.Gaussians` container (activated attributes)."""
         with torch.no_grad():
             return cls(gaussians.means, gaussians.rotations(), gaussians.scales(), gaussians.opacities(),
-                       settings)
+                       settings, objects=objects)
 
     def native_handle(self) -> tuple[int, int, int, int]:
         """``(nodes pointer, node count, SoA pointer, SoA row length)`` for the fused integrator
@@ -228,7 +256,7 @@ class GaussianTracer:
     def __call__(self, origins: torch.Tensor, dirs: torch.Tensor, t_max=None) -> torch.Tensor:
         """Visibility ``[M]`` in [0, 1] (detached, dtype of ``origins``) of rays ``origins`` and
         ``dirs`` ``[M, 3]`` (world; dirs normalised here, zero dirs give V = 1) over
-        ``t in [t_min, t_max]`` (``t_max``: None = inf, a number, or ``[M]``)."""
+        ``t in [self.t_min, t_max]`` (``t_max``: None = inf, a number, or ``[M]``)."""
         from core.pbr import _native
 
         origins, dirs, t_max = _rays(origins, dirs, t_max)
@@ -247,7 +275,7 @@ class GaussianTracer:
         s = self.settings
         _native.lib().bv_trace(self._nodes.ctypes.data, self.num_nodes, self._records.ctypes.data,
                                o32.ctypes.data, d32.ctypes.data, None if tm is None else tm.ctypes.data, m,
-                               float(s.t_min), float(s.early_stop), float(s.max_alpha),
+                               float(self.t_min), float(s.early_stop), float(s.max_alpha),
                                int(s.threads or default_threads()), out.ctypes.data, stats.ctypes.data)
         self.last_stats = {"rays": m, "node_visits": int(stats[0]), "gaussian_tests": int(stats[1]),
                            "gaussians_counted": int(stats[2])}
@@ -256,13 +284,15 @@ class GaussianTracer:
 
 def visibility_reference(means, quats, scales, opacities, origins, dirs, t_max=None,
                          settings: TraceSettings | None = None, early_stop: bool = False,
-                         kernel_precision: bool = True) -> torch.Tensor:
+                         kernel_precision: bool = True, objects: bool = False) -> torch.Tensor:
     """Brute-force twin of :class:`GaussianTracer` in float64 (every ray against every Gaussian,
-    ``O(rays x Gaussians)`` memory: tests only). With ``early_stop=False`` (default) the product
+    ``O(rays x Gaussians)`` memory: tests only). ``objects``: as the tracer's (rays start at
+    ``settings.t_min_objects`` when set). With ``early_stop=False`` (default) the product
     runs over all Gaussians. ``kernel_precision`` rounds the stored inputs (rays, mu, M, opacity,
     r2max, t_max) through float32 as the kernel stores them, so both agree to ~1e-12 (the
     arithmetic is float64 in both). Returns ``[M]`` float64."""
     s = settings or TraceSettings()
+    t_min = _t_min(s, objects)
     prep = prepare_gaussians(means, quats, scales, opacities, s, torch.float64)
     origins, dirs, t_max = _rays(origins, dirs, t_max)
     o = origins.to(torch.float64)
@@ -284,8 +314,8 @@ def visibility_reference(means, quats, scales, opacities, origins, dirs, t_max=N
     dp = torch.einsum("kij,mj->mki", prep["M"], d)
     a = (dp * dp).sum(-1)
     b = (op * dp).sum(-1)
-    t = torch.where(a > 0, -b / torch.where(a > 0, a, torch.ones_like(a)), torch.full_like(a, s.t_min))
-    t = torch.minimum(torch.maximum(t, torch.full_like(t, s.t_min)), tmx[:, None].expand_as(t))
+    t = torch.where(a > 0, -b / torch.where(a > 0, a, torch.ones_like(a)), torch.full_like(a, t_min))
+    t = torch.minimum(torch.maximum(t, torch.full_like(t, t_min)), tmx[:, None].expand_as(t))
     p = op + t[..., None] * dp
     rr = (p * p).sum(-1)
     alpha = torch.clamp(prep["opacity"][None] * torch.exp(-0.5 * rr), max=s.max_alpha)
@@ -296,5 +326,5 @@ def visibility_reference(means, quats, scales, opacities, origins, dirs, t_max=N
             v = torch.where(v < s.early_stop, v, v * (1.0 - alpha[:, k]))
     else:
         v = torch.prod(1.0 - alpha, dim=1)
-    valid = (tmx >= s.t_min) & ~zero
+    valid = (tmx >= t_min) & ~zero
     return torch.where(valid, v, torch.ones_like(v))

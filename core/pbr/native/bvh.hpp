@@ -1,4 +1,4 @@
-// The BVH of the shadow-ray kernels (_visibility.cpp, _integrator.cpp): one header-only template
+// The BVH of the shadow-ray kernels (trace4.hpp, shadow.hpp): one header-only template
 // over the node width W.
 //
 // Build: binary, binned SAH (16 bins) over the Gaussians' truncation boxes, leaves of ~leaf_size

@@ -1,5 +1,6 @@
 // The integrator's shadow rays: transmittance through the Gaussians (3DGRT maximum response) of
-// up to two 8-wide BVHs (native/bvh.hpp), with the Gaussians of each leaf stored SoA (14 float
+// up to three 8-wide BVHs (native/bvh.hpp: the static scene, moving nodes, edited objects), each
+// with its own minimum ray distance t_min, with the Gaussians of each leaf stored SoA (14 float
 // arrays in leaf order, padded by 16) so one AVX-512 pass tests up to 16 Gaussians of a leaf at
 // once, in float32. Precision: each lane first moves the ray origin to the point of the ray
 // closest to the Gaussian's mean (world metres), so the Mahalanobis terms stay small (no
@@ -20,15 +21,19 @@ constexpr int kSoaArrays = 14;  // mux muy muz m00..m22 opacity r2max
 
 typedef WideNode<8> Node8;
 
+// Most BVHs one shadow ray goes through.
+constexpr int kMaxBvhs = 3;
+
 struct Bvh {
     const Node8* nodes;
     int64_t num_nodes;
     const float* soa;  // [14][npad]
     int64_t npad;
+    float tmin;        // a ray ignores this BVH's Gaussians closer than this (metres)
 };
 
 struct TraceParams {
-    float tmin, early_stop, max_alpha;
+    float early_stop, max_alpha;
 };
 
 struct TStats {
@@ -93,10 +98,11 @@ inline float leaf_simd(const Bvh& b, int32_t first, int32_t cnt, const float o[3
     return V;
 }
 
-// Multiply V by the transmittance of one BVH along [tmin, tmax]; stops once V < early_stop.
-inline float trace_bvh(const Bvh& b, const float o[3], const float d[3], float tmin, float tmax,
-                       const TraceParams& tp, float V, TStats& st) {
-    if (b.num_nodes <= 0 || V < tp.early_stop) return V;
+// Multiply V by the transmittance of one BVH along [b.tmin, tmax]; stops once V < early_stop.
+inline float trace_bvh(const Bvh& b, const float o[3], const float d[3], float tmax, const TraceParams& tp, float V,
+                       TStats& st) {
+    const float tmin = b.tmin;
+    if (b.num_nodes <= 0 || V < tp.early_stop || !(tmax >= tmin)) return V;
     float inv[3];
     for (int k = 0; k < 3; ++k) inv[k] = slab_inv(d[k]);
     const SlabRay<8> ray(o, inv, tmin, tmax);
@@ -108,14 +114,14 @@ inline float trace_bvh(const Bvh& b, const float o[3], const float d[3], float t
     return V;
 }
 
-// Visibility through up to two BVHs (e.g. static background + moving nodes): the product.
-inline float trace2(const Bvh* bv, int nb, const float o[3], const float d[3], float tmin, float tmax,
-                    const TraceParams& tp, TStats& st) {
+// Visibility through up to kMaxBvhs BVHs (static background, moving nodes, edited objects): the
+// product, each BVH over [its tmin, tmax].
+inline float trace_bvhs(const Bvh* bv, int nb, const float o[3], const float d[3], float tmax, const TraceParams& tp,
+                        TStats& st) {
     st.rays++;
-    if (!(tmax >= tmin)) return 1.f;
     float V = 1.f;
     for (int i = 0; i < nb; ++i) {
-        V = trace_bvh(bv[i], o, d, tmin, tmax, tp, V, st);
+        V = trace_bvh(bv[i], o, d, tmax, tp, V, st);
         if (V < tp.early_stop) break;
     }
     return V;

@@ -12,6 +12,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from core.errors import ConfigError
 from core.pbr import EnvironmentMap, cook_torrance, estimate_reflected, pdf_brdf
 from core.pbr.integrator import NativeEnv, VisibilityCache, eval_brdf, integrate, trace_simd
 from core.pbr.lights import PointLight, SpotLight, direct_lighting, lights_to_world
@@ -115,6 +116,32 @@ def test_simd_visibility_matches_the_brute_force_reference_and_two_bvhs_multiply
     np.testing.assert_allclose(v3, visibility_reference(*cloud, o, d, tm, settings=s).numpy(), atol=2e-4, rtol=1e-3)
 
 
+def test_simd_visibility_traces_each_of_three_bvhs_from_its_own_t_min():
+    """Static, dynamic and edited-object BVHs in one shadow ray, the objects' from
+    ``t_min_objects``: the product of the brute-force twin's three visibilities (also on segments
+    that end before the larger t_min, as rays to a local light)."""
+    cloud = _cloud()
+    g = _gen(2)
+    o = (torch.rand(3000, 3, generator=g, dtype=D64) - 0.5) * 6.0
+    d = torch.randn(3000, 3, generator=g, dtype=D64)
+    s = TraceSettings(early_stop=0.0, t_min=0.6, t_min_objects=0.05, leaf_size=16)
+    parts = [[t[a:b] for t in cloud] for a, b in ((0, 100), (100, 220), (220, 300))]
+    tracers = [GaussianTracer(*parts[0], settings=s), GaussianTracer(*parts[1], settings=s),
+               GaussianTracer(*parts[2], settings=s, objects=True)]
+    for tm in (None, torch.rand(3000, generator=g, dtype=D64) * 2.0):
+        ref = np.ones(3000)
+        for k, p in enumerate(parts):
+            ref *= visibility_reference(*p, o, d, tm, settings=s, objects=k == 2).numpy()
+        v, stats = trace_simd(tracers, o, d, None if tm is None else tm.numpy())
+        np.testing.assert_allclose(v, ref, atol=2e-4, rtol=1e-3)
+        assert (ref < 0.5).any() and stats["rays"] == 3000
+    # with every BVH from 0.6 the answer differs (the objects' near Gaussians are skipped)
+    same = [GaussianTracer(*p, settings=s) for p in parts]
+    assert np.abs(trace_simd(same, o, d)[0] - trace_simd(tracers, o, d)[0]).max() > 0.1
+    with pytest.raises(ConfigError, match="at most 3"):
+        trace_simd(tracers + tracers[:1], o, d)
+
+
 def _points(p=6):
     pts = torch.zeros(p, 3, dtype=D64)
     n = torch.tensor([[0, 0, 1.0], [0, 0, 1], [1, 0, 0], [0, 0.6, 0.8], [0, 0, 1], [0, 1, 0]], dtype=D64)
@@ -169,6 +196,32 @@ def test_local_lights_match_direct_lighting_exactly_and_culling_changes_nothing(
         np.testing.assert_allclose(res.radiance, ref, rtol=2e-3, atol=1e-5)
     np.testing.assert_allclose(outs[True].radiance, outs[False].radiance, rtol=1e-6, atol=1e-7)
     assert outs[True].counters["light_evals"] < outs[False].counters["light_evals"]
+    # the scene's Gaussians in three BVHs, the last an edited object's traced from t_min_objects:
+    # the integrator's light rays are the twin's product of the three tracers
+    s3 = TraceSettings(leaf_size=16, t_min=0.3, t_min_objects=0.01)
+    parts = [[t[a:b] for t in cloud] for a, b in ((0, 60), (60, 130), (130, 200))]
+    trs = [GaussianTracer(*parts[0], settings=s3), GaussianTracer(*parts[1], settings=s3),
+           GaussianTracer(*parts[2], settings=s3, objects=True)]
+
+    def vis3(o, d, t_max=None):
+        return trs[0](o, d, t_max) * trs[1](o, d, t_max) * trs[2](o, d, t_max)
+
+    ref3 = direct_lighting(pts, n, wo, alb, rough, metal, lights, visibility=vis3, normal_offset=0.01).numpy()
+    res3 = integrate(pts, n, wo, alb, rough, metal, black, trs, lights, n_env=1, n_brdf=0, normal_offset=0.01)
+    np.testing.assert_allclose(res3.radiance, ref3, rtol=2e-3, atol=1e-5)
+    # points on an edited object trace its BVH from the scene's t_min: as if it were no object's
+    on = torch.tensor([True, False, True, False, False, True])
+    as_scene = trs[:2] + [GaussianTracer(*parts[2], settings=s3)]
+    assert (trs[2].t_min, trs[2].t_min_on_objects, as_scene[2].t_min) == (0.01, 0.3, 0.3)
+    env = NativeEnv(EnvironmentMap.constant(0.5, 8, 16))
+    kw = dict(n_env=16, n_brdf=16, normal_offset=0.01, ids=torch.arange(6))
+    mixed = integrate(pts, n, wo, alb, rough, metal, env, trs, lights, on_object=on, **kw).radiance
+    for mask, tracers in ((on, as_scene), (~on, trs)):
+        sub = integrate(pts[mask], n[mask], wo[mask], alb[mask], rough[mask], metal[mask], env, tracers, lights,
+                        **{**kw, "ids": torch.arange(6)[mask]}).radiance
+        np.testing.assert_array_equal(mixed[mask.numpy()], sub)
+    plain = integrate(pts, n, wo, alb, rough, metal, env, trs, lights, **kw).radiance
+    assert not np.array_equal(mixed[on.numpy()], plain[on.numpy()])
 
 
 def test_white_lambert_furnace_and_energy_bound_in_the_kernel():

@@ -70,6 +70,31 @@ def test_segments_with_t_max_and_t_min():
     assert (short == 1).all()
 
 
+def test_object_tracers_start_their_rays_at_t_min_objects():
+    """A tracer of edited objects (``objects=True``) traces from ``TraceSettings.t_min_objects``
+    (the kernel and its brute-force twin agree); None falls back to ``t_min``."""
+    cloud = _cloud(seed=4)
+    o, d = _rays(seed=5)
+    s = TraceSettings(early_stop=0.0, t_min=0.8, t_min_objects=0.1)
+    obj, scene = GaussianTracer(*cloud, settings=s, objects=True), GaussianTracer(*cloud, settings=s)
+    assert (obj.t_min, scene.t_min) == (0.1, 0.8)
+    ref = visibility_reference(*cloud, o, d, settings=s, objects=True)
+    np.testing.assert_allclose(obj(o, d).numpy(), ref.numpy(), atol=2e-7)
+    np.testing.assert_allclose(scene(o, d).numpy(), visibility_reference(*cloud, o, d, settings=s).numpy(), atol=2e-7)
+    # the objects' rays are the rays of a tracer with t_min 0.1, and differ from t_min 0.8's
+    assert torch.equal(ref, visibility_reference(*cloud, o, d, settings=TraceSettings(early_stop=0.0, t_min=0.1)))
+    assert float((ref - visibility_reference(*cloud, o, d, settings=s)).abs().max()) > 0.1
+    # segments shorter than the objects' t_min are fully visible there, not before
+    tm = torch.full((o.shape[0],), 0.5, dtype=D64)
+    np.testing.assert_allclose(obj(o, d, tm).numpy(), visibility_reference(*cloud, o, d, tm, settings=s,
+                                                                           objects=True).numpy(), atol=2e-7)
+    assert bool((scene(o, d, tm) == 1.0).all())
+    unset = TraceSettings(t_min=0.3)
+    assert GaussianTracer(*cloud, settings=unset, objects=True).t_min == 0.3
+    assert torch.equal(visibility_reference(*cloud, o, d, settings=unset, objects=True),
+                       visibility_reference(*cloud, o, d, settings=unset))
+
+
 def test_early_stop_error_is_bounded():
     cloud = _cloud(n=1500, seed=5, extent=3.0)
     cloud = (cloud[0], cloud[1], cloud[2], cloud[3].clamp_min(0.5))
@@ -170,6 +195,9 @@ def test_invalid_inputs_raise_named_errors():
         GaussianTracer(cloud[0], cloud[1], -cloud[2], cloud[3])
     with pytest.raises(ConfigError, match="t_min"):
         TraceSettings(t_min=-1.0)
+    for bad in (-0.1, float("nan"), True, "0.1"):
+        with pytest.raises(ConfigError, match="t_min_objects"):
+            TraceSettings(t_min_objects=bad)
     tr = GaussianTracer(*cloud)
     with pytest.raises(ShapeError, match="dirs"):
         tr(torch.zeros(4, 3), torch.zeros(3, 3))

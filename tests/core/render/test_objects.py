@@ -256,3 +256,87 @@ def test_removing_a_car_that_hid_the_road_in_every_frame_fills_the_road_from_aro
         assert (after[i]["opacity"].numpy()[car, 0] > 0.5).mean() > 0.95, i
         albedo_a = after[i]["albedo"].numpy()[car]
         assert np.abs(albedo_a[:, 0] - albedo_a[:, 1]).max() < 0.05, i  # grey road, not red paint
+
+
+def test_object_t_min_changes_the_edited_objects_only_and_a_scene_without_edits_not_at_all(street):
+    """``TraceSettings.t_min_objects`` (``Scenario.object_shadow_t_min_m``): without edits every
+    frame renders to the bit as without it (a static node in the static BVH, the moving car's
+    BVH, the visibility cache, the BVH rebuilt every frame); once an edit moves a node, that node
+    alone goes to a third BVH traced from ``t_min_objects``: the road under a plate 0.3 m above
+    it darkens (the contact shadow a 0.5 m ``t_min`` cuts off), the road away from it does not."""
+    from core.pbr.lights import PointLight
+    from core.pbr.visibility import TraceSettings
+
+    graph, views = street
+    eye = np.array([-2.0, -2.0, 7.0])
+    plate_size = (2.0, 2.0, 0.04)
+    plate = oracle_gaussians([Part("plate", *geo.box((0, 0, 0), plate_size), Material("p", (0.5, 0.5, 0.5), 0.6, 0.0))],
+                             eye[None], 40.0, OracleSettings(spacing_px=1.5, max_spacing=0.1))
+    pose = torch.eye(4, dtype=torch.float64)[None].clone()
+    centre = np.array([6.0, 2.0, 0.3])
+    pose[0, :3, 3] = torch.from_numpy(centre)
+    g = SceneGraph(graph.background, [graph.node("car0"), RigidNode("plate", "sign", plate, torch.tensor([0]), pose,
+                                                                    size=plate_size)], graph.times)
+    env = EnvironmentMap.constant(0.3, 16, 32)
+    lights = [PointLight((6.0, 2.0, 6.0), intensity=500.0)]
+
+    # a low camera that sees the road under the plate
+    low = View(Camera.from_intrinsics(look_at(np.array([2.0, 2.0, 1.2]), np.array([6.0, 2.0, 0.0])), 40.0, 40.0, 40.0,
+                                      30.0, 80, 60), 0.0, "low")
+
+    def render(gr, t_obj, static_reuse=True, reuse=False, vs=(*views[:2], low)):
+        # one thread: the visibility cache's fill order (so a frame's cache hits) follows the threads
+        s = PBRSettings(rays_per_pixel=8, threads=1, normal_offset=0.1, reuse_visibility=reuse,
+                        trace=TraceSettings(leaf_size=16, t_min=0.5, t_min_objects=t_obj))
+        r = ClipRenderer(gr, env, s, lights=lights, static_reuse=static_reuse)
+        return r, [r.render(v.camera, time_s=v.time_s, frame_index=i).hdr for i, v in enumerate(vs)]
+
+    for static_reuse, reuse in ((True, False), (True, True), (False, False)):
+        _, base = render(g, None, static_reuse, reuse)
+        for t_obj in (0.0, 0.05, 2.0):
+            r, got = render(g, t_obj, static_reuse, reuse)
+            assert r.objects == frozenset()
+            assert all(torch.equal(a, b) for a, b in zip(base, got)), (static_reuse, reuse, t_obj)
+
+    moved = apply_edits(g, [ObjectEdit("move", "plate")])  # edited where it stood
+    assert moved.edited_nodes() == {"plate"} and not moved.node("car0").edited
+    _, off = render(moved, None)
+    _, same = render(moved, 0.5)  # t_min_objects == t_min: the BVHs of before
+    assert all(torch.equal(a, b) for a, b in zip(off, same))
+    _, off = render(moved, None, vs=(low,))  # (the same frame index, so the same samples)
+    for static_reuse in (True, False):
+        r, near = render(moved, 0.05, static_reuse, vs=(low,))
+        assert r.objects == {"plate"}
+        if static_reuse:  # the static BVH holds the background, not the plate
+            assert r.context.static_tracer.num_gaussians == graph.background.num
+        # the pixels that darken see the road within 1 m of the plate (or the plate): the
+        # pixels where the road is 3 m or more from it keep their mean within 2%
+        cam = low.camera
+        c2w = cam.pose_numpy()
+        d = cam.ray_directions().reshape(-1, 3)
+        with np.errstate(divide="ignore"):
+            t = -c2w[2, 3] / d[:, 2]  # where each pixel's ray meets the road plane
+        pts = c2w[:3, 3] + d * t[:, None]
+        out = np.where(t > 0, (np.abs(pts - centre)[:, :2] - np.asarray(plate_size[:2]) / 2).max(1), np.inf)
+        lum_off, lum_near = (x[-1].numpy().reshape(-1, 3).sum(1) for x in (off, near))
+        darker = lum_near < 0.8 * lum_off
+        assert darker.sum() >= 10 and bool((out[darker] < 1.0).all())
+        far = (out > 3.0) & np.isfinite(out)
+        assert far.sum() >= 100
+        assert abs(lum_near[far].mean() / lum_off[far].mean() - 1.0) < 0.02
+
+
+def test_points_on_an_edited_object_are_inside_its_box_above_its_floor():
+    from core.pbr.render import OBJECT_FLOOR_M, OBJECT_MARGIN_M, on_objects
+
+    pose = np.eye(4)
+    pose[:3, :3] = [[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]  # turned 90 deg
+    pose[:3, 3] = [10.0, 2.0, 0.75]
+    pts = torch.tensor([[10.0, 2.0, 1.4],  # on the roof
+                        [10.0, 2.0 + 2.2 + OBJECT_MARGIN_M / 2, 0.75],  # just past the front (x: 4.4 long)
+                        [10.0, 2.0 + 2.2 + 2 * OBJECT_MARGIN_M, 0.75],  # in front of it
+                        [10.0 + 0.9 + OBJECT_MARGIN_M / 2, 2.0, 0.5],  # its side (y: 1.8 wide)
+                        [10.0, 2.0, OBJECT_FLOOR_M / 2],  # the road under it
+                        [10.0, 2.0, 0.0]], dtype=torch.float64)
+    assert on_objects(pts, [(pose, SIZE)]).tolist() == [True, True, False, True, False, False]
+    assert not on_objects(pts, []).any()

@@ -17,6 +17,8 @@ ENV = np.ones((8, 16, 3), np.float32)
 
 
 @pytest.mark.parametrize("field,value", [("normal_offset_m", -0.1), ("shadow_t_min_m", float("nan")),
+                                         ("object_shadow_t_min_m", -0.01), ("object_shadow_t_min_m", float("nan")),
+                                         ("object_shadow_t_min_m", None), ("object_shadow_t_min_m", True),
                                          ("rotation_deg", float("inf")), ("exposure_ev", 40.0),
                                          ("denoiser", "magic"), ("rays_per_pixel", 0), ("sky_scale", -1.0)])
 def test_bad_fields_are_named(field, value):

@@ -1,4 +1,5 @@
-// Shadow-ray transmittance through 3D Gaussians (3DGRT response) with a BVH, for core.pbr.visibility.
+// Shadow-ray transmittance through 3D Gaussians (3DGRT response) with a 4-wide BVH, for
+// core.pbr.visibility (its C entry points bv_* are in _integrator.cpp, one shared object).
 //
 // V(ray) = prod_k (1 - alpha_k),  alpha_k = min(max_alpha, o_k * exp(-r2_k / 2)),
 // r2_k = min over t in [tmin, tmax] of |M_k (origin + t dir - mu_k)|^2  (M_k = S^-1 R^T),
@@ -16,8 +17,13 @@
 // ~8.3 counted Gaussians per ray; ~1.1-1.5 us per ray per core, about 45% traversal and 55%
 // Gaussian tests (exp, division, record cache misses).
 
-#include "native/bvh.hpp"
-#include "native/parallel.hpp"
+#pragma once
+
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+
+#include "bvh.hpp"
 
 namespace {
 
@@ -70,47 +76,3 @@ float trace_one(const Node4* nodes, const float* g, const double o[3], const dou
 }
 
 }  // namespace
-
-extern "C" {
-
-int bv_abi_version() { return 2; }
-
-// Build the BVH over n boxes (lo, hi: [n, 3] float32): binary SAH build, collapsed to a 4-wide
-// BVH. perm_out: [n] int32 (Gaussian order in the leaves). nodes_out: capacity n + 1 Node4
-// (128 bytes each). Returns the Node4 count.
-// depth_out: the depth of the deepest leaf (root = 1).
-int64_t bv_build(const float* lo, const float* hi, int64_t n, int32_t leaf_size, int32_t* perm_out, void* nodes_out,
-                 int32_t* depth_out) {
-    return build_wide<4>(lo, hi, n, leaf_size, perm_out, nodes_out, depth_out);
-}
-
-// Trace nrays rays. origins, dirs: [nrays, 3] float32; tmax: [nrays] float32 or null (= inf).
-// gauss: [*, 16] float32 in leaf order. out: [nrays] float32. stats (nullable): int64[3] =
-// node visits, Gaussian tests, Gaussians counted.
-void bv_trace(const void* nodes_v, int64_t num_nodes, const float* gauss, const float* origins, const float* dirs,
-              const float* tmax, int64_t nrays, double tmin, double early_stop, double max_alpha, int32_t nthreads,
-              float* out, int64_t* stats) {
-    const Node4* nodes = static_cast<const Node4*>(nodes_v);
-    if (num_nodes <= 0) {
-        for (int64_t i = 0; i < nrays; ++i) out[i] = 1.0f;
-        if (stats) stats[0] = stats[1] = stats[2] = 0;
-        return;
-    }
-    int nt = std::max(1, (int)nthreads);
-    std::vector<Stats> st(nt);
-    parallel_chunks(nrays, 256, nt, [&](int tid, int64_t b, int64_t e) {
-        Stats& s = st[tid];
-        for (int64_t i = b; i < e; ++i) {
-            double o[3] = {origins[3 * i], origins[3 * i + 1], origins[3 * i + 2]};
-            double d[3] = {dirs[3 * i], dirs[3 * i + 1], dirs[3 * i + 2]};
-            double t1 = tmax ? (double)tmax[i] : INFINITY;
-            out[i] = t1 >= tmin ? trace_one(nodes, gauss, o, d, tmin, t1, early_stop, max_alpha, s) : 1.0f;
-        }
-    });
-    if (stats) {
-        stats[0] = stats[1] = stats[2] = 0;
-        for (auto& s : st) { stats[0] += s.nodes; stats[1] += s.tests; stats[2] += s.hits; }
-    }
-}
-
-}  // extern "C"
