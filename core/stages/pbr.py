@@ -84,17 +84,19 @@ class PBRStageConfig:
     """Seed of the pixel subsets and the ray samples."""
     threads: int = 2
     """CPU threads of the rasterizer and the shadow-ray kernels."""
-    skip_sun_search: bool = True
+    skip_sun_search: bool = False
     """Skip: no sun search for an overcast or night capture. When the training frames show no
     sun (at most ``overcast_max_clipped_sky`` of their sky pixels clipped: no sun disc and no
     glare) or are dark (median LDR value at most ``night_max_median_ldr``), no surface sample
     reaches :func:`core.lighting.prior.estimate_lighting`, so its shading search over sun
     directions does not run: the lighting prior is the sky fit, with a sun only where a compact
-    cluster of clipped sky pixels shows one; the summary's ``skips_fired`` says why. On: within
-    noise (``benchmarks/bench_skips.py``, tiny streets under the overcast courtyard map, seeds
-    0-2: photometric PSNR +1.04 +- 1.04 dB: equal twice, +3.1 dB once where the search had put a
-    sun in the shading; the lighting prior 0.055 +- 0.020 s faster); it fired on none of the
-    six sunny and night streets."""
+    cluster of clipped sky pixels shows one; the summary's ``skips_fired`` says why. Off by
+    default: within noise on overcast streets (``benchmarks/bench_skips.py``, tiny streets under
+    the overcast courtyard map, seeds 0-2: photometric PSNR +1.04 +- 1.04 dB; the lighting prior
+    0.055 +- 0.020 s faster) and it fired on none of six sunny and night streets, but "no clipped
+    sky" does not tell an overcast sky from a sunny one whose sun is out of view: under the
+    sunrise map at 300 deg (eval street test2, a 7.9 deg sun behind the camera, 0.05% of the
+    sky clipped) it fired and the sun came out 153 deg off. It saves 0.06 s."""
     overcast_max_clipped_sky: float = 0.01
     """Largest fraction of clipped sky pixels (any channel at the LDR clip) of an overcast capture."""
     night_max_median_ldr: float = 0.05
