@@ -13,7 +13,7 @@ from typing import Annotated, Callable
 
 import pydantic_core
 import redis
-from fastapi import Depends, Header, HTTPException, Path as PathParam, Request
+from fastapi import APIRouter, Depends, Header, HTTPException, Path as PathParam, Request
 from fastapi.responses import Response
 from sqlalchemy import func, select
 
@@ -208,3 +208,9 @@ class Ctx:
         if rec.request_hash != fingerprint or rec.resource != resource:
             raise _err(409, f"Idempotency-Key {key!r} was already used with a different request")
         return rec.resource_id
+
+
+def route_context(ctx: Ctx) -> tuple[APIRouter, Settings, Database, ArtifactStore]:
+    """What a router's ``build(ctx)`` starts from: a new router and the context's settings,
+    database and store, bound once as locals that its handlers close over."""
+    return APIRouter(), ctx.settings, ctx.db, ctx.store

@@ -20,7 +20,7 @@ from core.io import exr_header, read_envmap
 from services.auth import Principal
 from services.db import IdempotencyKey
 from services.routes.common import (ENVMAP_TYPES, Ctx, E, IdemKey, IdPath, P, _err, _fingerprint, envmap_out,
-                                    stream_upload, visible)
+                                    route_context, stream_upload, visible)
 from worker.db import Envmap, new_id
 
 log = logging.getLogger("brdf.gateway")
@@ -28,11 +28,8 @@ log = logging.getLogger("brdf.gateway")
 
 def build(ctx: Ctx) -> APIRouter:
     """The routes, bound to the app's context (settings, database, store, Redis)."""
-    settings = ctx.settings
-    db = ctx.db
-    store = ctx.store
+    router, settings, db, store = route_context(ctx)
     idem_lookup = ctx.idem_lookup
-    router = APIRouter()
 
     # --- environment maps ---------------------------------------------------------------------
     def ingest_envmap(upload: Path, size: int, digest: str, name: str, p: Principal, idem: str | None):

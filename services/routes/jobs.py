@@ -14,7 +14,8 @@ from sqlalchemy.exc import IntegrityError
 import api_schemas as S
 from services.auth import Principal
 from services.ranges import file_response
-from services.routes.common import E, Ctx, IdemKey, IdPath, P, _err, _fingerprint, ok, ok_json, page_total, visible
+from services.routes.common import (E, Ctx, IdemKey, IdPath, P, _err, _fingerprint, ok, ok_json, page_total,
+                                    route_context, visible)
 from services.routes.objects import check_scene_request
 from services.db import IdempotencyKey
 from worker.db import Artifact, Envmap, Job, JobAttempt, JobStage, attempt_ended, new_id, utcnow
@@ -27,18 +28,9 @@ log = logging.getLogger("brdf.gateway")
 
 def build(ctx: Ctx) -> APIRouter:
     """The routes, bound to the app's context (settings, database, store, Redis)."""
-    settings = ctx.settings
-    db = ctx.db
-    store = ctx.store
-    rconn = ctx.rconn
-    get_scene = ctx.get_scene
-    get_job = ctx.get_job
-    job_rows = ctx.job_rows
-    read_job_out = ctx.read_job_out
-    idem_lookup = ctx.idem_lookup
-    jobs_t = ctx.jobs_t
-    artifacts_t = Artifact.__table__
-    router = APIRouter()
+    router, settings, db, store = route_context(ctx)
+    rconn, idem_lookup, jobs_t, artifacts_t = ctx.rconn, ctx.idem_lookup, ctx.jobs_t, Artifact.__table__
+    get_scene, get_job, job_rows, read_job_out = ctx.get_scene, ctx.get_job, ctx.job_rows, ctx.read_job_out
 
     # --- job submission -----------------------------------------------------------------------
     def submit(p: Principal, scene_id: str, type_name: str, params, idem: str | None) -> JSONResponse:

@@ -22,7 +22,7 @@ from core.errors import CoreError
 from services.auth import Principal
 from services.db import IdempotencyKey
 from services.routes.common import (SCENE_TYPES, Ctx, E, IdemKey, IdPath, P, _err, _fingerprint, ok, page_total,
-                                    scene_out, stream_upload)
+                                    route_context, scene_out, stream_upload)
 from worker.db import Scene, new_id
 
 log = logging.getLogger("brdf.gateway")
@@ -30,11 +30,8 @@ log = logging.getLogger("brdf.gateway")
 
 def build(ctx: Ctx) -> APIRouter:
     """The routes, bound to the app's context (settings, database, store, Redis)."""
-    settings = ctx.settings
-    db = ctx.db
-    store = ctx.store
+    router, settings, db, store = route_context(ctx)
     idem_lookup = ctx.idem_lookup
-    router = APIRouter()
 
     def ingest_scene(upload: Path, work: Path, size: int, digest: str, name: str | None, p: Principal,
                      idem: str | None) -> tuple[Scene, bool]:

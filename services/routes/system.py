@@ -11,7 +11,7 @@ from sqlalchemy import func, select
 
 import api_schemas as S
 from services.auth import create_key
-from services.routes.common import E, Ctx, Operator
+from services.routes.common import E, Ctx, Operator, route_context
 from worker.db import Job, JobAttempt, Scene
 from worker.queue import list_workers, live_workers, queue_stats, waiting_jobs
 
@@ -20,12 +20,8 @@ log = logging.getLogger("brdf.gateway")
 
 def build(ctx: Ctx) -> APIRouter:
     """The routes, bound to the app's context (settings, database, store, Redis)."""
-    settings = ctx.settings
-    db = ctx.db
-    store = ctx.store
-    rconn = ctx.rconn
-    registry = ctx.registry
-    router = APIRouter()
+    router, settings, db, store = route_context(ctx)
+    rconn, registry = ctx.rconn, ctx.registry
 
     # --- health -----------------------------------------------------------------------------
     @router.get("/healthz", response_model=S.Health, tags=["system"])
