@@ -27,7 +27,6 @@ import random
 import re
 import shutil
 import signal
-import socket
 import statistics
 import subprocess
 import sys
@@ -40,14 +39,11 @@ import httpx
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+from services.supervisor import children  # noqa: E402
+from services.testing import PrivateRedis, free_port  # noqa: E402
+
 KEY = "brdf_soak-operator-key-0123456789abcdefghijklmnopqrstu"
 FINAL = ("done", "failed", "canceled")
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def pct(xs: list[float], q: float) -> float | None:
@@ -55,44 +51,6 @@ def pct(xs: list[float], q: float) -> float | None:
         return None
     xs = sorted(xs)
     return xs[min(len(xs) - 1, max(0, int(round(q / 100 * len(xs) + 0.5)) - 1))]
-
-
-class Redis:
-    def __init__(self, workdir: Path):
-        self.port, self.dir, self.proc = free_port(), workdir, None
-        workdir.mkdir(parents=True, exist_ok=True)
-
-    def start(self) -> None:
-        self.proc = subprocess.Popen(["redis-server", "--bind", "127.0.0.1", "--port", str(self.port), "--save", "",
-                                      "--appendonly", "no", "--dir", str(self.dir)],
-                                     stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        import redis
-
-        for _ in range(100):
-            try:
-                if redis.Redis(port=self.port, socket_connect_timeout=0.5).ping():
-                    return
-            except redis.RedisError:
-                time.sleep(0.05)
-        raise RuntimeError("private redis-server did not start")
-
-    def kill(self) -> None:
-        if self.proc is not None and self.proc.poll() is None:
-            self.proc.kill()
-            self.proc.wait(10)
-
-
-def children(pid: int) -> list[int]:
-    out = []
-    for d in os.listdir("/proc"):
-        if d.isdigit():
-            try:
-                with open(f"/proc/{d}/stat") as fh:
-                    if int(fh.read().rsplit(")", 1)[1].split()[1]) == pid:
-                        out.append(int(d))
-            except (OSError, ValueError, IndexError):
-                pass
-    return out
 
 
 def cmdline(pid: int) -> list[str]:
@@ -108,7 +66,7 @@ class Soak:
         self.a = a
         self.rng = random.Random(a.seed)
         self.tmp = Path(tempfile.mkdtemp(prefix="brdf-soak-"))
-        self.redis = Redis(self.tmp / "redis")
+        self.redis = PrivateRedis(self.tmp / "redis")
         self.port = free_port()
         self.base = f"http://127.0.0.1:{self.port}"
         self.lock = threading.Lock()

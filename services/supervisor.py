@@ -45,12 +45,17 @@ def _children_map() -> dict[int, list[int]]:
     return out
 
 
+def children(pid: int) -> list[int]:
+    """The live processes whose parent is ``pid``."""
+    return _children_map().get(pid, [])
+
+
 def descendants(pid: int) -> list[int]:
     """Every live process below ``pid`` (an RQ work horse calls setpgrp but stays a child)."""
-    children = _children_map()
+    tree = _children_map()
     out, todo = [], [pid]
     while todo:
-        for c in children.get(todo.pop(), []):
+        for c in tree.get(todo.pop(), []):
             out.append(c)
             todo.append(c)
     return out

@@ -7,7 +7,6 @@ from __future__ import annotations
 import os
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -18,31 +17,18 @@ from pathlib import Path
 import pytest
 
 from core.bundle.testing import write_fake_bundle as make_bundle  # noqa: F401  (the one fake-bundle builder)
+from services.supervisor import descendants
+from services.testing import PrivateRedis, free_port, redis_ping  # noqa: F401  (the tests' private Redis)
 
 REPO = Path(__file__).resolve().parents[2]
 REDIS_START = ["redis-server", "--daemonize", "yes", "--bind", "127.0.0.1", "-::1", "--port", "6379", "--save", "",
                "--appendonly", "no", "--dir", "/var/lib/redis", "--logfile", "/var/log/redis/ci.log"]
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def _redis_ping(url: str) -> bool:
-    import redis
-
-    try:
-        return bool(redis.Redis.from_url(url, socket_connect_timeout=1).ping())
-    except redis.RedisError:
-        return False
-
-
 def ensure_redis() -> str:
     """The machine's Redis on 6379, started with the CI command if it is down."""
     url = "redis://127.0.0.1:6379/0"
-    if _redis_ping(url):
+    if redis_ping(url):
         return url
     if not shutil.which("redis-server"):
         pytest.fail("Redis is down and redis-server is not installed (apt-get install redis-server)")
@@ -50,7 +36,7 @@ def ensure_redis() -> str:
         os.makedirs(d, exist_ok=True)
     subprocess.run(REDIS_START, check=True, stdout=subprocess.DEVNULL)
     for _ in range(50):
-        if _redis_ping(url):
+        if redis_ping(url):
             return url
         time.sleep(0.1)
     pytest.fail("could not start redis-server on 127.0.0.1:6379")
@@ -69,35 +55,6 @@ def claim_redis_db() -> tuple[str, int]:
                 return f"redis://127.0.0.1:6379/{n}", n
             r.delete("brdf-test-claim")
     pytest.fail("no free Redis DB (1..15) to run the service tests in")
-
-
-class PrivateRedis:
-    """A throwaway redis-server on a free port (no persistence), restartable and killable."""
-
-    def __init__(self, workdir: Path):
-        self.port = free_port()
-        self.workdir = workdir
-        self.proc: subprocess.Popen | None = None
-        workdir.mkdir(parents=True, exist_ok=True)
-
-    @property
-    def url(self) -> str:
-        return f"redis://127.0.0.1:{self.port}/0"
-
-    def start(self) -> None:
-        self.proc = subprocess.Popen(["redis-server", "--bind", "127.0.0.1", "--port", str(self.port), "--save", "",
-                                      "--appendonly", "no", "--dir", str(self.workdir)],
-                                     stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        for _ in range(100):
-            if _redis_ping(self.url):
-                return
-            time.sleep(0.05)
-        raise RuntimeError("private redis-server did not start")
-
-    def kill(self) -> None:
-        if self.proc is not None and self.proc.poll() is None:
-            self.proc.kill()
-            self.proc.wait(10)
 
 
 def ensure_postgres() -> str:
@@ -188,21 +145,7 @@ class Proc:
 
     def descendants(self) -> list[int]:
         """Every process below this one (an RQ work horse calls setsid, leaving our group)."""
-        children: dict[int, list[int]] = {}
-        for d in os.listdir("/proc"):
-            if d.isdigit():
-                try:
-                    with open(f"/proc/{d}/stat") as fh:
-                        ppid = int(fh.read().rsplit(")", 1)[1].split()[1])
-                except (OSError, ValueError, IndexError):
-                    continue
-                children.setdefault(ppid, []).append(int(d))
-        out, todo = [], [self.p.pid]
-        while todo:
-            for c in children.get(todo.pop(), []):
-                out.append(c)
-                todo.append(c)
-        return out
+        return descendants(self.p.pid)
 
     def kill9(self) -> None:
         """kill -9 the process and everything it started (as when its machine or container dies)."""
@@ -265,6 +208,36 @@ def start_worker(settings, log: Path) -> Proc:
     from services.cli import WORKER_CMD
 
     return Proc(cli_cmd(WORKER_CMD), svc_env(settings), log)
+
+
+def start_up(env: dict, log: Path, workers: int = 1) -> tuple[subprocess.Popen, str]:
+    """``brdf up`` (a gateway and ``workers`` supervised workers) on a free port in a session of
+    its own, its output in ``log``; (the process, the gateway's base URL)."""
+    port = free_port()
+    with open(log, "wb") as fh:
+        p = subprocess.Popen([sys.executable, "-m", "services.cli", "up", "--port", str(port), "--workers", str(workers)],
+                             env=env, cwd=REPO, stdout=fh, stderr=subprocess.STDOUT, start_new_session=True)
+    return p, f"http://127.0.0.1:{port}"
+
+
+def stop_up(p: subprocess.Popen) -> None:
+    """Ctrl-C a ``brdf up`` and wait for it; past 30 s it is killed and the timeout raised."""
+    p.send_signal(signal.SIGINT)
+    try:
+        p.wait(30)
+    except subprocess.TimeoutExpired:
+        p.kill()
+        raise
+
+
+def http_ok(url: str) -> bool:
+    """``GET url`` answers 200."""
+    import httpx
+
+    try:
+        return httpx.get(url, timeout=2).status_code == 200
+    except httpx.HTTPError:
+        return False
 
 
 def wait_for(fn, timeout: float, what: str, interval: float = 0.2):

@@ -4,7 +4,6 @@ gateway and a worker on one machine) rendering a scene end to end."""
 from __future__ import annotations
 
 import re
-import signal
 import subprocess
 import sys
 import time
@@ -12,7 +11,8 @@ import time
 import httpx
 import pytest
 
-from svc_support import REPO, free_port, make_bundle, svc_env, wait_for, zip_bundle
+from services.supervisor import descendants
+from svc_support import REPO, http_ok, make_bundle, start_up, stop_up, svc_env, wait_for, zip_bundle
 
 
 def run_cli(args, env):
@@ -45,16 +45,12 @@ def test_worker_rejects_unknown_queue(settings):
 def test_up_runs_gateway_and_worker(settings, tmp_path):
     env = svc_env(settings)
     env.pop("BRDF_BOOTSTRAP_OPERATOR_KEY", None)
-    port = free_port()
     log = tmp_path / "up.log"
-    with open(log, "wb") as fh:
-        p = subprocess.Popen([sys.executable, "-m", "services.cli", "up", "--port", str(port), "--workers", "1"], env=env,
-                             cwd=REPO, stdout=fh, stderr=subprocess.STDOUT, start_new_session=True)
+    p, base = start_up(env, log)
     try:
         key = wait_for(lambda: (re.findall(r"operator key \(shown once, stored hashed\): (\S+)",
                                            log.read_text()) or [None])[0], 60, "brdf up to print its operator key")
-        base = f"http://127.0.0.1:{port}"
-        wait_for(lambda: _ok(base + "/readyz"), 60, f"the gateway to be ready\n{log.read_text()}")
+        wait_for(lambda: http_ok(base + "/readyz"), 60, f"the gateway to be ready\n{log.read_text()}")
         c = httpx.Client(base_url=base, headers={"Authorization": f"Bearer {key}"}, timeout=30)
         z = zip_bundle(make_bundle(tmp_path / "b"), tmp_path / "b.zip")
         sid = c.post("/scenes", content=z.read_bytes(), headers={"Content-Type": "application/zip"}).json()["id"]
@@ -63,22 +59,13 @@ def test_up_runs_gateway_and_worker(settings, tmp_path):
                      90, f"the job to finish\n{log.read_text()}")
         assert j["state"] == "done", j
         assert "dashboard: http://127.0.0.1:" in log.read_text()
-        from svc_support import Proc
-
-        probe = Proc.__new__(Proc)
-        probe.p = p
         # the job's RQ work horse marks the job done just before it exits: give it a moment
         deadline = time.monotonic() + 15
-        while len(children := probe.descendants()) > 1 and time.monotonic() < deadline:
+        while len(children := descendants(p.pid)) > 1 and time.monotonic() < deadline:
             time.sleep(0.2)
         assert len(children) == 1, f"brdf up runs one worker process beside the gateway: {children}"
     finally:
-        p.send_signal(signal.SIGINT)
-        try:
-            p.wait(30)
-        except subprocess.TimeoutExpired:
-            p.kill()
-            raise
+        stop_up(p)
     assert p.returncode in (0, 130), log.read_text()[-2000:]
     time.sleep(0.5)
     alive = [pid for pid in children if _alive(pid)]
@@ -90,11 +77,4 @@ def _alive(pid: int) -> bool:
         with open(f"/proc/{pid}/stat") as fh:
             return fh.read().rsplit(")", 1)[1].split()[0] != "Z"
     except OSError:
-        return False
-
-
-def _ok(url):
-    try:
-        return httpx.get(url, timeout=2).status_code == 200
-    except httpx.HTTPError:
         return False

@@ -11,20 +11,12 @@ from __future__ import annotations
 
 import time
 
-import httpx
 import pytest
 
-from conftest_shared import OPERATOR_KEY
-from svc_support import PrivateRedis, make_bundle, start_gateway, start_worker, wait_for, zip_bundle
+from svc_support import PrivateRedis, start_gateway, start_worker, wait_for, zip_bundle
+from worker_support import api, job, upload
 
 pytestmark = pytest.mark.slow
-
-
-@pytest.fixture(scope="module")
-def long_zip(tmp_path_factory):
-    """A bundle whose export takes several seconds (40 frames of 160x120 with G-buffers)."""
-    d = tmp_path_factory.mktemp("long")
-    return zip_bundle(make_bundle(d / "b", frames=40, width=160, height=120, test_frames=5), d / "long.zip")
 
 
 @pytest.fixture
@@ -33,20 +25,6 @@ def procs():
     yield started
     for p in reversed(started):
         p.stop()
-
-
-def api(base):
-    return httpx.Client(base_url=base, headers={"Authorization": f"Bearer {OPERATOR_KEY}"}, timeout=30)
-
-
-def upload(c, path) -> str:
-    r = c.post("/scenes", content=path.read_bytes(), headers={"Content-Type": "application/zip"})
-    assert r.status_code == 201, r.text
-    return r.json()["id"]
-
-
-def job(c, jid) -> dict:
-    return c.get(f"/jobs/{jid}").json()
 
 
 def test_worker_killed_mid_job_is_retried_and_finishes(settings, tmp_path, long_zip, procs):

@@ -16,14 +16,7 @@ from sqlalchemy import select, update
 
 from svc_support import make_bundle, zip_bundle
 from worker.db import Job, utcnow
-
-ZIP = {"Content-Type": "application/zip"}
-
-
-def upload(client, path) -> str:
-    r = client.post("/scenes", content=path.read_bytes(), headers=ZIP)
-    assert r.status_code == 201, r.text
-    return r.json()["id"]
+from worker_support import upload
 
 
 def work(settings, queues=("render",)):

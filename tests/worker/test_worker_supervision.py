@@ -13,41 +13,16 @@ from __future__ import annotations
 import os
 import re
 import signal
-import subprocess
-import sys
 import time
 from pathlib import Path
 
-import httpx
 import pytest
 
-from conftest_shared import OPERATOR_KEY
-from svc_support import REPO, free_port, make_bundle, start_gateway, start_worker, svc_env, wait_for, zip_bundle
+from services.supervisor import alive, children, descendants
+from svc_support import http_ok, start_gateway, start_up, start_worker, stop_up, svc_env, wait_for
+from worker_support import api, job, upload
 
 pytestmark = pytest.mark.slow
-
-
-@pytest.fixture(scope="module")
-def long_zip(tmp_path_factory):
-    """A bundle whose export takes several seconds (40 frames of 160x120 with G-buffers)."""
-    d = tmp_path_factory.mktemp("long")
-    return zip_bundle(make_bundle(d / "b", frames=40, width=160, height=120, test_frames=5), d / "long.zip")
-
-
-def api(base):
-    return httpx.Client(base_url=base, headers={"Authorization": f"Bearer {OPERATOR_KEY}"}, timeout=30)
-
-
-def upload(c, path) -> str:
-    r = c.post("/scenes", content=path.read_bytes(), headers={"Content-Type": "application/zip"})
-    assert r.status_code == 201, r.text
-    return r.json()["id"]
-
-
-def job(c, jid) -> dict:
-    r = c.get(f"/jobs/{jid}")
-    assert r.status_code == 200, r.text
-    return r.json()
 
 
 def metric(c, name: str) -> float:
@@ -114,21 +89,9 @@ def test_work_horse_killed_retry_starts_within_5s(settings, tmp_path, long_zip):
             p.stop()
 
 
-def _up(settings, tmp_path, workers=1):
-    env = svc_env(settings)
-    port = free_port()
-    log = tmp_path / "up.log"
-    fh = open(log, "wb")
-    p = subprocess.Popen([sys.executable, "-m", "services.cli", "up", "--port", str(port), "--workers", str(workers)],
-                         env=env, cwd=REPO, stdout=fh, stderr=subprocess.STDOUT, start_new_session=True)
-    return p, f"http://127.0.0.1:{port}", log
-
-
 def _worker_pids(up_pid: int) -> list[int]:
-    from services.supervisor import _children_map
-
     out = []
-    for c in _children_map().get(up_pid, []):
+    for c in children(up_pid):
         try:
             cmd = open(f"/proc/{c}/cmdline", "rb").read().split(b"\0")
         except OSError:
@@ -139,13 +102,12 @@ def _worker_pids(up_pid: int) -> list[int]:
 
 
 def test_up_restarts_a_killed_worker_and_retries_its_job(settings, tmp_path, long_zip):
-    from services.supervisor import alive, descendants
-
     st = settings.model_copy(update={"stale_after_s": 300.0})
-    p, base, log = _up(st, tmp_path)
+    log = tmp_path / "up.log"
+    p, base = start_up(svc_env(st), log)
     try:
         c = api(base)
-        wait_for(lambda: _ok(base + "/healthz"), 60, f"brdf up to serve\n{log.read_text()}")
+        wait_for(lambda: http_ok(base + "/healthz"), 60, f"brdf up to serve\n{log.read_text()}")
         first = wait_for(lambda: _worker_pids(p.pid), 30, "the worker to start")
         assert len(first) == 1
         sid = upload(c, long_zip)
@@ -187,16 +149,4 @@ def test_up_restarts_a_killed_worker_and_retries_its_job(settings, tmp_path, lon
         assert len(_worker_pids(p.pid)) == 1
         print(f"\nbrdf up: idle worker kill -> new worker {restart_s:.2f} s; mid-job kill -> retry running {took:.2f} s")
     finally:
-        p.send_signal(signal.SIGINT)
-        try:
-            p.wait(30)
-        except subprocess.TimeoutExpired:
-            p.kill()
-            raise
-
-
-def _ok(url):
-    try:
-        return httpx.get(url, timeout=2).status_code == 200
-    except httpx.HTTPError:
-        return False
+        stop_up(p)
