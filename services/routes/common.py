@@ -7,14 +7,17 @@ from __future__ import annotations
 
 import hashlib
 import json
+import shutil
+import uuid
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Callable
 
+import anyio
 import pydantic_core
 import redis
 from fastapi import APIRouter, Depends, Header, HTTPException, Path as PathParam, Request
-from fastapi.responses import Response
+from fastapi.responses import JSONResponse, Response
 from sqlalchemy import func, select
 
 import api_schemas as S
@@ -143,6 +146,33 @@ async def stream_upload(request: Request, dest: Path, limit: int, what: str) -> 
     if n == 0:
         raise _err(400, f"empty body: send the {what} as the request body")
     return n, h.hexdigest()
+
+
+def require_content_type(request: Request, accepted: set[str], send: str) -> None:
+    """415 unless the request's Content-Type is one of ``accepted``; ``send`` says what to send."""
+    ctype = request.headers.get("content-type", "").split(";")[0].strip().lower()
+    if ctype not in accepted:
+        raise _err(415, f"Content-Type {ctype or '(none)'!r} not accepted: send {send}")
+
+
+async def receive_upload(request: Request, data_dir: Path, limit: int, what: str, ingest: Callable):
+    """Stream the body into a new work directory under ``data_dir/uploads`` (at most ``limit``
+    bytes; ``what`` names it in errors), run ``ingest(upload, work, size, sha256)`` in a thread
+    and remove the work directory; what ``ingest`` returns."""
+    work = data_dir / "uploads" / uuid.uuid4().hex
+    work.mkdir(parents=True)
+    try:
+        upload = work / "upload.bin"
+        size, digest = await stream_upload(request, upload, limit, what)
+        return await anyio.to_thread.run_sync(ingest, upload, work, size, digest)
+    finally:
+        await anyio.to_thread.run_sync(lambda: shutil.rmtree(work, ignore_errors=True))
+
+
+def created(model, replay: bool, location: str) -> JSONResponse:
+    """An upload's answer: 201 with its Location, or 200 when an idempotent repeat replays it."""
+    return JSONResponse(model.model_dump(mode="json"), status_code=200 if replay else 201,
+                        headers={"Location": location})
 
 
 # --- the app's context ------------------------------------------------------------------------

@@ -4,14 +4,10 @@ from __future__ import annotations
 
 import logging
 import os
-import shutil
-import uuid
 from pathlib import Path
 from typing import Annotated
 
-import anyio
 from fastapi import APIRouter, Query, Request
-from fastapi.responses import JSONResponse
 from sqlalchemy import select
 
 import api_schemas as S
@@ -19,8 +15,8 @@ from core.errors import CoreError
 from core.io import exr_header, read_envmap
 from services.auth import Principal
 from services.db import IdempotencyKey
-from services.routes.common import (ENVMAP_TYPES, Ctx, E, IdemKey, IdPath, P, _err, _fingerprint, envmap_out,
-                                    route_context, stream_upload, visible)
+from services.routes.common import (ENVMAP_TYPES, Ctx, E, IdemKey, IdPath, P, _err, _fingerprint, created,
+                                    envmap_out, receive_upload, require_content_type, route_context, visible)
 from worker.db import Envmap, new_id
 
 log = logging.getLogger("brdf.gateway")
@@ -77,20 +73,11 @@ def build(ctx: Ctx) -> APIRouter:
     async def upload_envmap(request: Request, p: P, idem: IdemKey = None,
                             name: Annotated[str, Query(min_length=1, max_length=256)] = "envmap"):
         """Upload an HDR environment map (W = 2 H; finite, non-negative values)."""
-        ctype = request.headers.get("content-type", "").split(";")[0].strip().lower()
-        if ctype not in ENVMAP_TYPES:
-            raise _err(415, f"Content-Type {ctype or '(none)'!r} not accepted: send image/x-exr or "
-                            "image/vnd.radiance")
-        work = settings.data_dir / "uploads" / uuid.uuid4().hex
-        work.mkdir(parents=True)
-        try:
-            upload = work / "upload.bin"
-            size, digest = await stream_upload(request, upload, settings.max_envmap_bytes, "environment map")
-            row, replay = await anyio.to_thread.run_sync(ingest_envmap, upload, size, digest, name, p, idem)
-        finally:
-            await anyio.to_thread.run_sync(lambda: shutil.rmtree(work, ignore_errors=True))
-        return JSONResponse(envmap_out(row).model_dump(mode="json"), status_code=200 if replay else 201,
-                            headers={"Location": f"/envmaps/{row.id}"})
+        require_content_type(request, ENVMAP_TYPES, "image/x-exr or image/vnd.radiance")
+        row, replay = await receive_upload(
+            request, settings.data_dir, settings.max_envmap_bytes, "environment map",
+            lambda upload, work, size, digest: ingest_envmap(upload, size, digest, name, p, idem))
+        return created(envmap_out(row), replay, f"/envmaps/{row.id}")
 
     @router.get("/envmaps", response_model=S.EnvmapList, tags=["envmaps"], responses=E)
     def list_envmaps(p: P):

@@ -4,14 +4,10 @@ from __future__ import annotations
 
 import logging
 import os
-import shutil
-import uuid
 from pathlib import Path
 from typing import Annotated
 
-import anyio
 from fastapi import APIRouter, Query, Request
-from fastapi.responses import JSONResponse
 from sqlalchemy import select
 from sqlalchemy.exc import IntegrityError
 
@@ -21,8 +17,8 @@ from core.bundle.archive import archive_kind
 from core.errors import CoreError
 from services.auth import Principal
 from services.db import IdempotencyKey
-from services.routes.common import (SCENE_TYPES, Ctx, E, IdemKey, IdPath, P, _err, _fingerprint, ok, page_total,
-                                    route_context, scene_out, stream_upload)
+from services.routes.common import (SCENE_TYPES, Ctx, E, IdemKey, IdPath, P, _err, _fingerprint, created, ok,
+                                    page_total, receive_upload, require_content_type, route_context, scene_out)
 from worker.db import Scene, new_id
 
 log = logging.getLogger("brdf.gateway")
@@ -97,20 +93,11 @@ def build(ctx: Ctx) -> APIRouter:
         """Upload a scene bundle (the raw .zip / .tar.gz as the body). Streamed to disk under the
         upload limit, unpacked with zip-slip / symlink / zip-bomb protection, validated; nothing is
         stored unless all of it is valid."""
-        ctype = request.headers.get("content-type", "").split(";")[0].strip().lower()
-        if ctype not in SCENE_TYPES:
-            raise _err(415, f"Content-Type {ctype or '(none)'!r} not accepted: send the bundle as application/zip "
-                            "or application/gzip (.tar.gz)")
-        work = settings.data_dir / "uploads" / uuid.uuid4().hex
-        work.mkdir(parents=True)
-        try:
-            upload = work / "upload.bin"
-            size, digest = await stream_upload(request, upload, settings.max_upload_bytes, "scene upload")
-            row, replay = await anyio.to_thread.run_sync(ingest_scene, upload, work, size, digest, name, p, idem)
-        finally:
-            await anyio.to_thread.run_sync(lambda: shutil.rmtree(work, ignore_errors=True))
-        return JSONResponse(scene_out(row).model_dump(mode="json"), status_code=200 if replay else 201,
-                            headers={"Location": f"/scenes/{row.id}"})
+        require_content_type(request, SCENE_TYPES, "the bundle as application/zip or application/gzip (.tar.gz)")
+        row, replay = await receive_upload(
+            request, settings.data_dir, settings.max_upload_bytes, "scene upload",
+            lambda upload, work, size, digest: ingest_scene(upload, work, size, digest, name, p, idem))
+        return created(scene_out(row), replay, f"/scenes/{row.id}")
 
     scenes_t = Scene.__table__
 
