@@ -148,6 +148,12 @@ async def stream_upload(request: Request, dest: Path, limit: int, what: str) -> 
     return n, h.hexdigest()
 
 
+def binary_body(description: str, *types: str) -> dict:
+    """The ``openapi_extra`` of a route whose body is a raw file of one of the media ``types``."""
+    return {"requestBody": {"required": True, "description": description,
+                            "content": {t: {"schema": {"type": "string", "format": "binary"}} for t in types}}}
+
+
 def require_content_type(request: Request, accepted: set[str], send: str) -> None:
     """415 unless the request's Content-Type is one of ``accepted``; ``send`` says what to send."""
     ctype = request.headers.get("content-type", "").split(";")[0].strip().lower()

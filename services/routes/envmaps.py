@@ -15,8 +15,8 @@ from core.errors import CoreError
 from core.io import exr_header, read_envmap
 from services.auth import Principal
 from services.db import IdempotencyKey
-from services.routes.common import (ENVMAP_TYPES, Ctx, E, IdemKey, IdPath, P, _err, _fingerprint, created,
-                                    envmap_out, receive_upload, require_content_type, route_context, visible)
+from services.routes.common import (ENVMAP_TYPES, Ctx, E, IdemKey, IdPath, P, _err, _fingerprint, binary_body,
+                                    created, envmap_out, receive_upload, require_content_type, route_context, visible)
 from worker.db import Envmap, new_id
 
 log = logging.getLogger("brdf.gateway")
@@ -67,9 +67,7 @@ def build(ctx: Ctx) -> APIRouter:
         return row, False
 
     @router.post("/envmaps", response_model=S.EnvmapOut, status_code=201, tags=["envmaps"], responses=E,
-              openapi_extra={"requestBody": {"required": True, "description": "an equirectangular map, .exr or .hdr",
-                                             "content": {t: {"schema": {"type": "string", "format": "binary"}}
-                                                         for t in ("image/x-exr", "image/vnd.radiance")}}})
+              openapi_extra=binary_body("an equirectangular map, .exr or .hdr", "image/x-exr", "image/vnd.radiance"))
     async def upload_envmap(request: Request, p: P, idem: IdemKey = None,
                             name: Annotated[str, Query(min_length=1, max_length=256)] = "envmap"):
         """Upload an HDR environment map (W = 2 H; finite, non-negative values)."""

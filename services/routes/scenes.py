@@ -17,8 +17,9 @@ from core.bundle.archive import archive_kind
 from core.errors import CoreError
 from services.auth import Principal
 from services.db import IdempotencyKey
-from services.routes.common import (SCENE_TYPES, Ctx, E, IdemKey, IdPath, P, _err, _fingerprint, created, ok,
-                                    page_total, receive_upload, require_content_type, route_context, scene_out)
+from services.routes.common import (SCENE_TYPES, Ctx, E, IdemKey, IdPath, P, _err, _fingerprint, binary_body,
+                                    created, ok, page_total, receive_upload, require_content_type, route_context,
+                                    scene_out)
 from worker.db import Scene, new_id
 
 log = logging.getLogger("brdf.gateway")
@@ -85,9 +86,7 @@ def build(ctx: Ctx) -> APIRouter:
         return row, False
 
     @router.post("/scenes", response_model=S.SceneOut, status_code=201, tags=["scenes"], responses=E,
-              openapi_extra={"requestBody": {"required": True, "description": "a scene bundle as .zip or .tar.gz",
-                                             "content": {t: {"schema": {"type": "string", "format": "binary"}}
-                                                         for t in ("application/zip", "application/gzip")}}})
+              openapi_extra=binary_body("a scene bundle as .zip or .tar.gz", "application/zip", "application/gzip"))
     async def upload_scene(request: Request, p: P, idem: IdemKey = None,
                            name: Annotated[str | None, Query(min_length=1, max_length=256)] = None):
         """Upload a scene bundle (the raw .zip / .tar.gz as the body). Streamed to disk under the
