@@ -155,7 +155,6 @@ def direction_to_uv_torch(dirs_world, height: int, width: int):
     poles). dirs_world: [..., 3] world. Returns (u, v) in pixels, u in [0, W), v in [0, H]."""
     import torch
 
-
     d = safe_normalize(dirs_world)
     theta = clamped_acos(d[..., 2])
     phi = torch.atan2(d[..., 1], d[..., 0])

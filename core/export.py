@@ -1,8 +1,9 @@
 """Export a bundle's frames as render outputs: multi-layer EXR per frame, MP4 videos, a preview.
 
-Until the reconstruction pipeline lands this is what ``brdf render`` produces for a bundle: the
-ground-truth HDR frame and G-buffers of a synthetic scene (or the linearised LDR frames of a real
-capture) in the same output layout the renderer will use.
+What ``brdf render`` and the service's render job produce for a bundle, a dataset export: its own
+frames as stored, i.e. the ground-truth HDR frame and G-buffers of a synthetic scene (or the
+linearised LDR frames of a real capture), in the output layout of the renderer. The method's
+renders are ``brdf relight`` / ``brdf night`` (:mod:`core.render.scenario`).
 """
 
 from __future__ import annotations
@@ -51,7 +52,6 @@ def export_frames(bundle: SceneBundle, out_dir: str | Path, *, split: str = "all
     the bundle has ground truth), ``<split>.mp4`` (LDR), ``<split>_gbuffers.mp4`` and
     ``preview.png`` into ``out_dir``."""
     from tqdm import tqdm
-
 
     if split not in ("all", "train", "test"):
         raise ConfigError(f"split: expected all, train or test, got {split!r}")

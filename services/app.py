@@ -136,6 +136,5 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.include_router(mod.build(ctx))
     app.state.unserved_queues = ctx.unserved_queues
 
-
     mount_dashboard(app)
     return app

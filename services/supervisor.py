@@ -177,7 +177,6 @@ class WorkerSupervisor:
         horse died with it."""
         from sqlalchemy import select
 
-
         st = self.settings
         conn = None
         held: list[str] = []  # the RQ jobs the dead worker had taken

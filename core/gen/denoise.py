@@ -191,7 +191,6 @@ def denoise_diffusion(frames: np.ndarray, albedo: np.ndarray, normal: np.ndarray
     (naming the file) when the model cannot be used."""
     import torch
 
-
     path = Path(settings.model_path) if settings.model_path else DEFAULT_FORWARD_MODEL
     sess = load_model(path, kind="forward_denoiser", threads=settings.threads)
     t, h, w, _ = frames.shape

@@ -160,7 +160,6 @@ def write_png(path: str | os.PathLike, arr: np.ndarray) -> None:
     """
     from PIL import Image
 
-
     a = np.asarray(arr)
     if a.ndim == 3 and a.shape[2] == 1:
         a = a[:, :, 0]

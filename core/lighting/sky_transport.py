@@ -108,7 +108,6 @@ def paper_brdf_weights(normals, view_dirs, albedo, roughness, metallic, chunk: i
     """
     import torch
 
-
     n = torch.from_numpy(np.asarray(normals, np.float64).reshape(-1, 3))
     m = len(n)
     wo = torch.from_numpy(np.asarray(view_dirs, np.float64).reshape(-1, 3))

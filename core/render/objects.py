@@ -151,7 +151,6 @@ def solid_filler(gaussians, size: Sequence[float], *, voxel_m: float = 0.15, cle
     shape."""
     from scipy.spatial import cKDTree
 
-
     for name, v, lo, hi in (("voxel_m", voxel_m, 0.01, 5.0), ("clearance_m", clearance_m, 0.0, 10.0),
                             ("top_margin_voxels", top_margin_voxels, 0.0, 10.0),
                             ("profile_inset_voxels", profile_inset_voxels, 0.0, 10.0)):
@@ -260,7 +259,6 @@ def ground_fill(background, poses, size: Sequence[float], *, cell_m: float = GRO
     where the road was observed nowhere. Where the background was observed it is left as it
     is. Empty when the background has no ground Gaussian near the strip."""
     from scipy.spatial import cKDTree
-
 
     for name, v, lo, hi in (("cell_m", cell_m, 0.02, 5.0), ("reach_m", reach_m, 0.0, 500.0),
                             ("margin_m", margin_m, 0.0, 10.0), ("max_gap_m", max_gap_m, 0.0, 100.0)):

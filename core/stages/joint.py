@@ -120,7 +120,6 @@ def run_stage(ctx) -> dict:
     the run (see the module docstring)."""
     from tqdm import tqdm
 
-
     cfg: JointSettings = ctx.settings
     b = ctx.bundle
     run = ctx.run

@@ -390,7 +390,6 @@ def run_volume(bundle: SceneBundle, cfg: VolumeSettings, out_dir: str | Path | N
     called every ``log_every`` steps (an exception raised there stops the run, e.g. a cancel)."""
     from tqdm import tqdm
 
-
     if cfg.iterations < 1:
         raise ConfigError(f"iterations: must be >= 1, got {cfg.iterations}")
     torch.manual_seed(cfg.seed)

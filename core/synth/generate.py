@@ -154,7 +154,6 @@ def generate_scene(cfg: SynthConfig, out_dir: str | Path, *, name: str | None = 
     """
     from tqdm import tqdm
 
-
     name = name or f"street_seed{cfg.seed}"
     spec = cfg.scene_spec
     env_train = _env(cfg.envmap, cfg.envmap_rotation_deg, spec)  # fail early on a bad envmap name
