@@ -124,10 +124,9 @@ def test_relit_references_get_more_samples_than_the_inputs(monkeypatch):
     """Relit frames are references: 4 x spp by default (their noise would cap the score of a
     perfect render), ``relight_spp`` when set; the input frames keep ``spp``."""
     import core.synth.generate as gen
-    import core.synth.mitsuba_backend as mb
 
     seen = []
-    monkeypatch.setattr(mb, "render_beauty", lambda parts, env, cam, *, spp, max_depth, seed: seen.append(spp) or np.zeros((2, 2, 3)))
+    monkeypatch.setattr(gen, "render_beauty", lambda parts, env, cam, *, spp, max_depth, seed: seen.append(spp) or np.zeros((2, 2, 3)))
     cfg = profile("tiny", spp=8)
     c2w = gen.camera_pose(cfg, 0.0, 0.0)
     gen._render_job(("beauty", "train_000", cfg, 0, c2w, "city", 0.0, 0))
