@@ -77,7 +77,7 @@ def test_work_horse_killed_retry_starts_within_5s(settings, tmp_path, long_zip):
         dead_run = (ts["finished_at"] - ts["started_at"]).total_seconds()
         waits = sum((datetime.fromisoformat(a["started_at"]) - datetime.fromisoformat(a["queued_at"])).total_seconds()
                     for a in h)
-        assert dead_run > 0.5
+        assert dead_run > 0.1  # the dead attempt ran long enough to tell apart from the waits (1 ms tolerance below)
         assert done["timings"]["queued_s"] == pytest.approx(waits, abs=1e-3)
         # from the first queueing to the retry's start: both waits and the dead attempt's run;
         # queued_s holds only the waits (a machine under load may wait longer than the dead run)
