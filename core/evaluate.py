@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import json
 import math
+import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -29,8 +30,16 @@ from typing import Callable
 import numpy as np
 import torch
 
+from core.bundle import open_bundle
+from core.camera import Camera
 from core.errors import ConfigError
+from core.lighting.prior import brightest_direction, sun_direction_error_deg
+from core.metrics import angular_error_deg, psnr, si_psnr, ssim
 from core.numerics import OPACITY_EPS
+from core.raster import RasterSettings, rasterize_gaussians
+from core.render.scenario import Scenario, render_scenario, views_from_frames
+from core.stages.chain import RunDir
+from core.tonemap import hdr_to_ldr
 
 
 @dataclass(frozen=True)
@@ -66,8 +75,6 @@ def _flip(ref: np.ndarray, test: np.ndarray) -> float:
 
 
 def _img_metrics(pred: np.ndarray, ref: np.ndarray, with_flip: bool) -> dict:
-    from core.metrics import psnr, ssim
-
     p, r = torch.from_numpy(np.clip(pred, 0, 1)).float(), torch.from_numpy(np.clip(ref, 0, 1)).float()
     out = {"psnr": float(psnr(p, r)), "ssim": float(ssim(p, r))}
     if with_flip:
@@ -86,14 +93,6 @@ def evaluate_run(run_dir: str | Path, bundle=None, settings: EvalSettings | None
     (default: the run's own scene). Writes ``evaluation.json`` into ``out`` (default the run
     directory) and returns it. Raises ConfigError when the bundle has no ground truth or the run
     has no reconstructed scene graph."""
-    from core.bundle import open_bundle
-    from core.camera import Camera
-    from core.lighting.prior import brightest_direction, sun_direction_error_deg
-    from core.metrics import angular_error_deg, si_psnr
-    from core.raster import RasterSettings, rasterize_gaussians
-    from core.stages.chain import RunDir
-    from core.tonemap import hdr_to_ldr
-
     s = settings or EvalSettings()
     run = RunDir(run_dir)
     b = bundle if bundle is not None else open_bundle(run.scene_path())
@@ -144,9 +143,6 @@ def evaluate_run(run_dir: str | Path, bundle=None, settings: EvalSettings | None
 
     # -- PBR renders: re-render under the recovered map, relight under held-back maps ----------
     # through the same path as a relight request (core.render.scenario), denoiser included
-    import tempfile
-
-    from core.render.scenario import Scenario, render_scenario, views_from_frames
 
     all_views = {v.name: v for v in views_from_frames(b, "all")}
 

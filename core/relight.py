@@ -23,8 +23,15 @@ import torch
 
 from core.camera import Camera
 from core.errors import ConfigError
+from core.gaussians import Gaussians
+from core.gen.denoise import denoise
+from core.io.images import write_png
+from core.io.video import write_mp4
 from core.pbr.envmap import EnvironmentMap
 from core.pbr.render import ClipRenderer, PBRSettings, write_frame_exr
+from core.render.objects import ground_fill, load_asset, object_box, prepare_edited, retime_poses
+from core.scene_graph import RigidNode, SceneGraph
+from core.tonemap import ldr_to_uint8
 
 OUTPUT_KINDS = ("exr", "mp4", "png")
 
@@ -122,8 +129,6 @@ def _explicit_poses(e: ObjectEdit, n_times: int, what: str) -> tuple[torch.Tenso
 
 
 def _trajectory(e: ObjectEdit, poses: torch.Tensor, time_indices: torch.Tensor, times, what: str):
-    from core.render.objects import retime_poses
-
     try:
         out = retime_poses(poses, time_indices, times, speed=e.speed, lateral_offset_m=e.lateral_offset_m)
     except ConfigError as exc:
@@ -135,10 +140,6 @@ def apply_edits(graph, edits: Sequence[ObjectEdit], what: str = "edits"):
     """A new :class:`core.scene_graph.SceneGraph` with ``edits`` applied in order (the input is
     not modified). Raises ConfigError naming the edit (``<what>[i]``) that refers to an unknown
     node or inserts an existing id."""
-    from core.gaussians import Gaussians
-    from core.render.objects import ground_fill, load_asset, object_box, prepare_edited
-    from core.scene_graph import RigidNode, SceneGraph
-
     nodes = list(graph.nodes)
     background = graph.background
     n_times = len(graph.times)
@@ -206,11 +207,6 @@ def render_clip(scene, env: EnvironmentMap, views: Sequence[View], out_dir: str 
     ``auto_exposure`` (:class:`core.render.exposure.AutoExposure`): one exposure for the clip
     measured on its HDR frames replaces ``settings.exposure`` for the LDR clip (the EXR keeps
     the HDR). Raises ConfigError for an empty view list, unknown outputs or a bad fps."""
-    from core.gen.denoise import denoise
-    from core.io.images import write_png
-    from core.io.video import write_mp4
-    from core.tonemap import ldr_to_uint8
-
     if not views:
         raise ConfigError("views: at least one view is needed")
     bad = [o for o in outputs if o not in OUTPUT_KINDS]

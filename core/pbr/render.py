@@ -43,6 +43,7 @@ renders as before, to the bit.
 
 from __future__ import annotations
 
+import hashlib
 import math
 import os
 import threading
@@ -57,8 +58,15 @@ import torch
 from core.camera import Camera
 from core.errors import ConfigError, ShapeError
 from core.gaussians import Gaussians
+from core.io.exr import write_exr
+from core.io.video import write_mp4
 from core.pbr.envmap import EnvironmentMap, luminance
+from core.pbr.integrator import NativeEnv, VisibilityCache
+from core.pbr.lights import lights_to_world
 from core.pbr.visibility import GaussianTracer, TraceSettings
+from core.raster import RasterSettings, rasterize_gaussians
+from core.scene_graph import SceneGraph
+from core.tonemap import ldr_to_uint8
 
 SAMPLINGS = ("env", "brdf", "mis")
 BACKENDS = ("native", "torch")
@@ -289,8 +297,6 @@ class FrameContext:
 
     def __init__(self, env: EnvironmentMap, settings: PBRSettings, static_gaussians=None,
                  static_tracer: GaussianTracer | None = None):
-        from core.pbr.integrator import NativeEnv, VisibilityCache
-
         self.env = env
         self.settings = settings
         self.native_env = NativeEnv(env) if settings.backend == "native" else None
@@ -442,8 +448,6 @@ _clip_hook: ContextVar["ClipHook | None"] = ContextVar("clip_hook", default=None
 def gaussians_fingerprint(g) -> str:
     """A content hash of Gaussians' shadow-casting fields (means, rotations, scales, opacities):
     clips share shadow rays only when their shadow casters are the same to the bit."""
-    import hashlib
-
     if g is None or g.num == 0:
         return "empty"
     h = hashlib.blake2b(digest_size=16)
@@ -453,8 +457,6 @@ def gaussians_fingerprint(g) -> str:
 
 
 def _env_fingerprint(env: EnvironmentMap) -> str:
-    import hashlib
-
     return hashlib.blake2b(env.radiance_map().detach().to(torch.float32).contiguous().numpy().tobytes(),
                            digest_size=16).hexdigest()
 
@@ -553,9 +555,6 @@ class ClipRenderer:
 
     def __init__(self, scene, env: EnvironmentMap, settings: PBRSettings | None = None, *, lights=(),
                  static_reuse: bool = True, raster_settings=None):
-        from core.raster import RasterSettings
-        from core.scene_graph import SceneGraph
-
         self.settings = settings or PBRSettings()
         self.env = env
         self.lights = list(lights)
@@ -584,9 +583,6 @@ class ClipRenderer:
         self.setup_seconds = time.perf_counter() - t0
 
     def render(self, camera, time_s: float = 0.0, frame_index: int = 0) -> PBRResult:
-        from core.pbr.lights import lights_to_world
-        from core.raster import rasterize_gaussians
-
         cam = Camera.of(camera)
         t0 = time.perf_counter()
         with torch.no_grad():
@@ -641,8 +637,6 @@ def write_frame_exr(path: str | os.PathLike, result: PBRResult) -> None:
     """One multi-layer EXR: beauty ``R, G, B`` and ``Lr`` in float32 (never overflows), the
     G-buffers (opacity, depth in metres, normal, albedo, roughness, metallic, color if present)
     and ``samples`` (per pixel) in half (clamped at 65504 by the writer, never Inf)."""
-    from core.io.exr import write_exr
-
     if result.hdr.dim() != 3:
         raise ShapeError("result: a full frame is needed (rendered without pixels=)")
     layers = {"rgb": result.hdr.detach().to(torch.float32).numpy(),
@@ -655,9 +649,6 @@ def write_frame_exr(path: str | os.PathLike, result: PBRResult) -> None:
 
 def write_clip_mp4(path: str | os.PathLike, frames, fps: float = 10) -> None:
     """LDR frames (``[H, W, 3]`` tensors or arrays in [0, 1], or :class:`PBRResult`) as H.264 MP4."""
-    from core.io.video import write_mp4
-    from core.tonemap import ldr_to_uint8
-
     def u8(f):
         x = f.ldr if isinstance(f, PBRResult) else f
         x = x.detach().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)

@@ -51,10 +51,10 @@ import numpy as np
 import torch
 
 from core.errors import ConfigError, ShapeError
-from core.numerics import require_finite, safe_normalize
-
-
 from core.native_build import default_threads  # noqa: E402,F401 - one definition, re-exported
+from core.numerics import require_finite, safe_normalize
+from core.pbr import _native
+from core.raster.splat import quat_to_rotmat, safe_normalize_quat
 
 
 @dataclass(frozen=True)
@@ -131,8 +131,6 @@ def prepare_gaussians(means, quats, scales, opacities, settings: TraceSettings, 
     ``M [K, 3, 3]`` (``S^-1 R^T``), ``opacity [K]``, ``r2max [K]``, ``lo``/``hi [K, 3]``
     (truncation boxes) and ``index [K]`` (rows of the input).
     """
-    from core.raster.splat import quat_to_rotmat, safe_normalize_quat
-
     means = _check(means, "means", 3)
     quats = _check(quats, "quats", 4)
     scales = _check(scales, "scales", 3)
@@ -183,8 +181,6 @@ class GaussianTracer:
 
     def __init__(self, means, quats, scales, opacities, settings: TraceSettings | None = None, *,
                  objects: bool = False):
-        from core.pbr import _native
-
         self.settings = settings or TraceSettings()
         self.objects = bool(objects)
         #: Minimum ray distance through these Gaussians, metres: ``settings.t_min``, or
@@ -257,8 +253,6 @@ class GaussianTracer:
         """Visibility ``[M]`` in [0, 1] (detached, dtype of ``origins``) of rays ``origins`` and
         ``dirs`` ``[M, 3]`` (world; dirs normalised here, zero dirs give V = 1) over
         ``t in [self.t_min, t_max]`` (``t_max``: None = inf, a number, or ``[M]``)."""
-        from core.pbr import _native
-
         origins, dirs, t_max = _rays(origins, dirs, t_max)
         m = origins.shape[0]
         d = safe_normalize(dirs if dirs.dtype == torch.float32 else dirs.to(torch.float64))
