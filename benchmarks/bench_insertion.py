@@ -93,6 +93,7 @@ def main() -> int:
     a = ap.parse_args()
 
     from core.bundle import open_bundle
+    from core.camera import Camera
     from core.io.exr import read_exr
     from core.io.images import write_png
     from core.relight import ObjectEdit
@@ -102,7 +103,7 @@ def main() -> int:
     from core.synth import geometry as geo
     from core.synth import profile
     from core.synth.generate import _env, ego_positions, intrinsics
-    from core.synth.mitsuba_backend import PinholeCamera, render_beauty, render_gbuffers
+    from core.synth.mitsuba_backend import render_beauty, render_gbuffers
     from core.synth.street import Part, _pose, make_street
 
     t0 = time.perf_counter()
@@ -172,7 +173,7 @@ def main() -> int:
 
         rows, per, inter_all, union_all, car_ratio = [], [], 0, 0, []
         for k, f in enumerate(frames):
-            cam = PinholeCamera(np.asarray(f.cam_to_world), ci.fx, ci.fy, ci.cx, ci.cy, cfg.width, cfg.height)
+            cam = Camera.from_intrinsics(np.asarray(f.cam_to_world), ci.fx, ci.fy, ci.cx, ci.cy, cfg.width, cfg.height)
             parts = street.parts_at(f.time_index)
             key = f"{f.id}_{x}_{y}_{yaw}_{a.source}_{a.spp}_{rot}_{env_name}.npz"
             cached = Path(a.cache) / key if a.cache else None

@@ -36,12 +36,6 @@ def mitsuba():
     return _MI
 
 
-def PinholeCamera(cam_to_world, fx: float, fy: float, cx: float, cy: float, width: int, height: int) -> Camera:
-    """Old spelling of :meth:`core.camera.Camera.from_intrinsics` (same arguments), kept only for
-    ``benchmarks/bench_insertion.py``; new code builds a :class:`core.camera.Camera`."""
-    return Camera.from_intrinsics(cam_to_world, fx, fy, cx, cy, width, height)
-
-
 _TEXTURES: dict = {}
 
 
