@@ -11,7 +11,7 @@ import httpx
 import pytest
 
 try:
-    from selenium.common.exceptions import NoSuchElementException, StaleElementReferenceException
+    from selenium.common.exceptions import NoSuchElementException, StaleElementReferenceException, TimeoutException
 except ImportError:  # the browser test skips without selenium; the other tests still run
     NoSuchElementException = StaleElementReferenceException = RuntimeError
 
@@ -393,8 +393,11 @@ def test_dashboard_operations_in_chromium(settings, tmp_path, browser, tiny_scen
         wait(lambda d: css("#job-summary[data-state='running']"), 60, "job B to run")
         # clicked by script: the live refresh may replace the button between finding and clicking it
         browser.execute_script("document.getElementById('cancel').click()")
-        wait(lambda d: "cancel: job is canceled" in d.find_element(By.ID, "action-result").text, 20,
-             f"the cancel (job B: {c.get(f'/jobs/{b}').json()['state']})")
+        try:
+            wait(lambda d: "cancel: job is canceled" in d.find_element(By.ID, "action-result").text, 60, "the cancel")
+        except TimeoutException as e:  # say what the page and the API showed
+            raise AssertionError(f"the cancel: page says {browser.find_element(By.ID, 'action-result').text!r}, "
+                                 f"job B is {c.get(f'/jobs/{b}').json()['state']}") from e
         try:
             os.kill(horse_b, signal.SIGCONT)  # let it see the cancel and stop (if it was not killed)
         except ProcessLookupError:
