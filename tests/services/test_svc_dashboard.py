@@ -13,7 +13,7 @@ import pytest
 try:
     from selenium.common.exceptions import NoSuchElementException, StaleElementReferenceException, TimeoutException
 except ImportError:  # the browser test skips without selenium; the other tests still run
-    NoSuchElementException = StaleElementReferenceException = RuntimeError
+    NoSuchElementException = StaleElementReferenceException = TimeoutException = RuntimeError
 
 from conftest_shared import OPERATOR_KEY
 from svc_support import make_bundle, start_gateway, start_worker, zip_bundle
