@@ -82,12 +82,12 @@ def forward_speed(threads: int, runs: int, model_path: Path | None) -> dict:
 def onnx_parity(models: Path, threads: int, runs: int = 3) -> dict:
     """Max |onnxruntime - PyTorch| of each committed model on random inputs of its contract
     (64x96, seeds 0..runs-1), the PyTorch network rebuilt from the file's own weights
-    (:func:`core.gen.train.load_onnx_weights`) with the card's architecture."""
+    (:func:`core.synth.gen_train.load_onnx_weights`) with the card's architecture."""
     import torch
 
     from core.gen.nets import UNetSettings, build_model, example_inputs
     from core.gen.runtime import load_model
-    from core.gen.train import load_onnx_weights
+    from core.synth.gen_train import load_onnx_weights
 
     out = {}
     for kind in ("forward_denoiser", "inverse_gbuffer"):
@@ -112,7 +112,7 @@ def onnx_parity(models: Path, threads: int, runs: int = 3) -> dict:
 
 def oidn_gain(threads: int) -> dict:
     from core.bundle import open_bundle
-    from core.gen.data import degrade_mc
+    from core.synth.gen_data import degrade_mc
     from core.gen.denoise import DenoiseSettings, denoise
     from core.tonemap import hdr_to_ldr
 
@@ -187,7 +187,7 @@ def forward_quality(scenes: list[Path], model: Path, threads: int, sigma_tau: fl
 
     from bench_pbr import flip
     from core.bundle import open_bundle
-    from core.gen.data import DataSettings, load_clips
+    from core.synth.gen_data import DataSettings, load_clips
     from core.gen.denoise import DenoiseSettings, denoise
     from core.gen.edm import OnnxDenoiser, SamplerSettings, flicker, sdedit
     from core.gen.runtime import load_model
@@ -237,8 +237,8 @@ def forward_quality(scenes: list[Path], model: Path, threads: int, sigma_tau: fl
 
 
 def quality(scenes: list[Path], models: Path, threads: int, degrade: bool) -> dict:
-    from core.gen.data import DataSettings
-    from core.gen.train import evaluate_model
+    from core.synth.gen_data import DataSettings
+    from core.synth.gen_train import evaluate_model
 
     data = DataSettings(forward_source="degrade" if degrade else "pbr")
     res = {}

@@ -1,7 +1,7 @@
 """Shadow casters the capture never saw (``core.stages.occluders``), measured before and after.
 
 Each ``LABEL=RUN`` is a reconstruction run (``brdf reconstruct --out RUN``) of a bundle with ground
-truth; it is evaluated with ``brdf evaluate`` (``core.evaluate``: relight PSNR / SSIM / FLIP under
+truth; it is evaluated with ``brdf evaluate`` (``core.synth.evaluate``: relight PSNR / SSIM / FLIP under
 the bundle's held-back maps, the re-render under the recovered map, NVS) unless its
 ``evaluation.json`` exists. Written: ``benchmarks/results/occluders.json`` (one row per label, the
 per-map relight figures and the occluder count of the run's scene graph) and a PNG of one relit
@@ -35,7 +35,7 @@ def main() -> int:
     ap.add_argument("--out", default=str(REPO / "benchmarks" / "results" / "occluders.json"))
     a = ap.parse_args()
     from core.bundle import open_bundle
-    from core.evaluate import evaluate_run
+    from core.synth.evaluate import evaluate_run
     from core.io.exr import read_exr
     from core.io.images import write_png
     from core.render.scenario import Scenario, render_scenario, views_from_frames

@@ -40,6 +40,7 @@ CONFIGS = {
     "quick_x0.5": ("quick", 0.5, {}),
     "quick": ("quick", 1.0, {}),
     "quick_x1.5": ("quick", 1.5, {}),
+    "quick_x2": ("quick", 2.0, {}),
     "benchmark": ("benchmark", 1.0, {}),
     "quick_40k": ("quick", 1.0, {"volume": {"density.max_gaussians": 40_000},
                                  "volume2": {"density.max_gaussians": 40_000}}),
@@ -72,8 +73,8 @@ def cut_copy(run_dir: Path, after: str, dst: Path) -> Path:
 
 
 def evaluate(run_dir: Path, rays: int, max_frames: int) -> dict:
-    """Cached :func:`core.evaluate.evaluate_run` summary (and its seconds)."""
-    from core.evaluate import EvalSettings, evaluate_run
+    """Cached :func:`core.synth.evaluate.evaluate_run` summary (and its seconds)."""
+    from core.synth.evaluate import EvalSettings, evaluate_run
 
     f = run_dir / f"bench_eval_r{rays}_f{max_frames}.json"
     if f.is_file():

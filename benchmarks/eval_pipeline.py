@@ -1,5 +1,5 @@
 """The inverse-rendering pipeline measured end to end: reconstruct (``core.stages.chain``) and
-evaluate (``core.evaluate``, the paper's metrics) on development and test streets made by
+evaluate (``core.synth.evaluate``, the paper's metrics) on development and test streets made by
 ``brdf generate``, plus the bundled default scene; writes ``benchmarks/results/eval.json``.
 
 Protocol: choices are made on the development streets (and the default scene, which is the
@@ -125,7 +125,7 @@ def seed_run(src: Path, dst: Path, stages) -> None:
 def run_row(scene: Path, runs: Path, prefix: str, profile: str, row: str) -> dict:
     """Reconstruct (resuming a kept run; a seeded row first copies its seed row's stages, running
     the seed row when needed) and evaluate; the evaluation summary plus timings."""
-    from core.evaluate import EvalSettings, evaluate_run
+    from core.synth.evaluate import EvalSettings, evaluate_run
     from core.stages.chain import RUN_FILE, RunDir, run_pipeline
 
     spec = ROWS[row]

@@ -11,7 +11,7 @@ Steps (each skips what is already done, so the script resumes after an interrupt
    prior's own held-out streets h15-h17 (``HELD_OUT_LIGHTING``) under ``--data``.
 2. ``prepare``: the forward model's inputs, PBR renders of perturbed oracle scenes at 16 rays per
    pixel (``core.synth.prepare``), for every scene.
-3. ``inverse`` / ``forward``: train that model for ``--steps`` steps (``core.gen.train``; resumes
+3. ``inverse`` / ``forward``: train that model for ``--steps`` steps (``core.synth.gen_train``; resumes
    from its checkpoint; ``--init-from`` fine-tunes an exported model), export
    ``models/<kind>.onnx`` and its model card with held-out metrics.
 4. ``validate``: the inverse model's metrics on the validation streets.
@@ -115,8 +115,8 @@ def prepare(data: Path, seeds) -> None:
 def train(kind: str, data: Path, seeds, steps: int, work: Path, models: Path, batch: int, crop: int,
           threads: int = 2, p_mean: float | None = None, init_from: Path | None = None,
           lr: float | None = None) -> None:
-    from core.gen.data import DataSettings
-    from core.gen.train import TrainSettings, train_model
+    from core.synth.gen_data import DataSettings
+    from core.synth.gen_train import TrainSettings, train_model
 
     dirs = [data / name for name, *_ in scene_plan(seeds)]
     missing = [str(d) for d in dirs if not (d / "bundle.json").is_file()]
@@ -142,8 +142,8 @@ def train(kind: str, data: Path, seeds, steps: int, work: Path, models: Path, ba
 
 def validate(data: Path, models: Path, threads: int = 2) -> dict:
     """Metrics of ``models/inverse_gbuffer.onnx`` (default sampler) on the validation streets."""
-    from core.gen.data import DataSettings
-    from core.gen.train import evaluate_model
+    from core.synth.gen_data import DataSettings
+    from core.synth.gen_train import evaluate_model
 
     out = {}
     for seed, _, _ in VALIDATION:
@@ -251,8 +251,8 @@ def generate_randomised(rand: Path, old: Path, n_train: int, n_val: int, n_test:
 
 def eval_streets(onnx: Path, dirs, threads: int) -> dict:
     """Inverse-model metrics per street (mean over its clips) and their mean over the streets."""
-    from core.gen.data import DataSettings
-    from core.gen.train import evaluate_model
+    from core.synth.gen_data import DataSettings
+    from core.synth.gen_train import evaluate_model
 
     per = {Path(d).name: evaluate_model("inverse_gbuffer", onnx, [d], DataSettings(forward_source="degrade"), threads=threads)
            for d in dirs}
@@ -265,8 +265,8 @@ def finetune_randomised(rand: Path, old: Path, work: Path, init_from: Path, step
                         p_mean: float, batch: int, crop: int, threads: int) -> dict:
     """Fine-tune the inverse model on the randomised train split; every ``eval_every`` steps export
     a snapshot and score it on the validation streets only (randomised val, old v9/v10)."""
-    from core.gen.data import DataSettings, load_clips
-    from core.gen.train import TrainSettings, train_model
+    from core.synth.gen_data import DataSettings, load_clips
+    from core.synth.gen_train import TrainSettings, train_model
 
     out = work / f"inverse_randomised_lr{lr:g}"  # one run per learning rate, each resumable
     snaps = out / "snapshots"
@@ -387,7 +387,7 @@ def ood_report(rand: Path, old: Path, work: Path, models: Path, threads: int, re
     res = {
         "model": "inverse_gbuffer", "sampler": "core.gen.edm.GENERATE_SAMPLER (one Euler step from sigma 80)",
         "metrics": "per street: mean over its clips of albedo si-PSNR (dB), roughness / metallic RMSE, normal MAE "
-                   "(deg), non-sky pixels (core.gen.train.evaluate_model); split figure: mean over its streets",
+                   "(deg), non-sky pixels (core.synth.gen_train.evaluate_model); split figure: mean over its streets",
         "targets_ood": OOD_TARGETS,
         "held_out_regions": describe(),
         "data_ranges": {k: v for k, v in asdict(settings).items()},
@@ -409,7 +409,7 @@ def ood_report(rand: Path, old: Path, work: Path, models: Path, threads: int, re
         "per_axis": per_axis, "ood_mean": ood_mean,
         "decision": dec,
     }
-    from core.gen.train import _sha256
+    from core.synth.gen_train import _sha256
 
     res["before_sha256"] = _sha256(models_["before"])
     res["after_sha256"] = _sha256(models_["after"])

@@ -104,9 +104,17 @@ def cmd_render(a: argparse.Namespace) -> int:
 
     b = _open_any(a.scene)
     out = Path(a.out) if a.out else REPO_ROOT / "outputs" / b.name
-    res = export_frames(b, out, split=a.split, fps=a.fps, progress=not a.quiet)
+    if a.ground_truth:
+        if b.manifest.ground_truth is None:
+            raise CoreError(f"--ground-truth: scene {b.name!r} has no ground truth (only generated bundles do)")
+        from core.synth.export import export_ground_truth
+
+        res = export_ground_truth(b, out, split=a.split, fps=a.fps, progress=not a.quiet)
+    else:
+        res = export_frames(b, out, split=a.split, fps=a.fps, progress=not a.quiet)
     print(f"scene {b.name!r}: {len(res.exr_files)} frame(s)")
-    print(f"  EXR (HDR beauty + G-buffer layers): {out / 'frames'}")
+    what = "ground-truth HDR beauty + G-buffer layers" if a.ground_truth else "captured frames, linearised HDR"
+    print(f"  EXR ({what}): {out / 'frames'}")
     for v in res.videos:
         print(f"  video: {v}")
     print(f"  preview: {res.preview}")
@@ -316,7 +324,7 @@ def cmd_night(a: argparse.Namespace) -> int:
 
 
 def cmd_evaluate(a: argparse.Namespace) -> int:
-    from core.evaluate import EvalSettings, evaluate_run
+    from core.synth.evaluate import EvalSettings, evaluate_run
 
     b = _open_any(a.scene) if a.scene else None
     s = EvalSettings(rays_per_pixel=a.rays, denoiser=a.denoiser, max_frames=a.max_frames)
@@ -467,11 +475,14 @@ def build_parser(extensions=()) -> argparse.ArgumentParser:
     i.add_argument("--quiet", action="store_true")
     i.set_defaults(fn=cmd_import)
 
-    r = sub.add_parser("render", help="render a scene's frames to multi-layer EXR + MP4")
+    r = sub.add_parser("render", help="export a scene's frames to EXR + MP4 (--ground-truth: Mitsuba frames and "
+                                      "G-buffers of a generated bundle)")
     r.add_argument("--scene", default=str(DEFAULT_SCENE), help="bundle dir or archive (default: bundled scene)")
     r.add_argument("--out", default=None, help="output directory (default outputs/<scene name>)")
     r.add_argument("--split", default="all", choices=["all", "train", "test"])
     r.add_argument("--fps", type=float, default=10.0)
+    r.add_argument("--ground-truth", action="store_true",
+                   help="export the bundle's Mitsuba ground truth (HDR beauty + G-buffers) instead of its captured frames")
     r.add_argument("--quiet", action="store_true")
     r.set_defaults(fn=cmd_render)
 

@@ -7,8 +7,8 @@ Outputs (``out``):
 * ``run/`` the reconstruction (:mod:`core.stages.chain`; a second call resumes it and keeps the
   stages that are done);
 * ``relit/`` and ``night/``: EXR frames (HDR beauty + G-buffers), MP4, preview PNG;
-* ``evaluation.json`` (:mod:`core.evaluate`; only with ground truth, which the product path never
-  reads: the evaluation alone does, to measure);
+* ``evaluation.json`` (:mod:`core.synth.evaluate`; only with ground truth, which the product path never
+  reads: the evaluation and the sheet's reference panel alone do, through :mod:`core.synth`);
 * ``sheet.png``: one test frame as input | novel view | albedo | normal | roughness | relit |
   Mitsuba ground truth of the relit frame (when the bundle has it).
 """
@@ -32,6 +32,7 @@ from core.numerics import OPACITY_EPS
 from core.raster import RasterSettings, rasterize_gaussians
 from core.render.scenario import Scenario, night_scenario, render_scenario, views_from_frames
 from core.stages.chain import RUN_FILE, RunDir, run_pipeline
+from core.synth.evaluate import EvalSettings, evaluate_run, relit_reference_ldr
 
 
 @dataclass(frozen=True)
@@ -153,8 +154,6 @@ def run_demo(scene: str | Path, out: str | Path, settings: DemoSettings | None =
     secs["night"] = round(time.perf_counter() - t1, 1)
     metrics = None
     if s.evaluate and m.ground_truth is not None:
-        from core.evaluate import EvalSettings, evaluate_run
-
         t1 = time.perf_counter()
         say("evaluate against the bundle's ground truth ...")
         metrics = evaluate_run(run_root, b, EvalSettings(rays_per_pixel=s.rays_per_pixel, denoiser=s.denoiser),
@@ -165,12 +164,7 @@ def run_demo(scene: str | Path, out: str | Path, settings: DemoSettings | None =
     relit_img = read_image(relit.result.preview).astype(np.float32) / 255.0 if relit.result.preview else None
     gt_img = None
     if relit_gt is not None and mid.id in relit_gt.frames:
-        from core.io.exr import read_exr
-        from core.tonemap import hdr_to_ldr
-
-        ref = read_exr(b.path(relit_gt.frames[mid.id]))
-        ref = ref["rgb"] if isinstance(ref, dict) else ref
-        gt_img = hdr_to_ldr(np.asarray(ref, np.float32)[..., :3], m.ldr_exposure, m.ldr_gamma)
+        gt_img = relit_reference_ldr(b, relit_gt.name, mid.id)
     write_png(out / "sheet.png", sheet(graph, sky, b, mid, relit_img, gt_img))
     secs["total"] = round(time.perf_counter() - t0, 1)
     outputs = {"run": str(run_root), "relit": str(out / "relit"), "night": str(out / "night"),

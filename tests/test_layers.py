@@ -63,3 +63,49 @@ def test_the_gateway_never_loads_torch():
     r = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stdout + r.stderr[-2000:]
     assert r.stdout.strip() == "[]"
+
+
+#: The bundle's ground-truth readers (:class:`core.bundle.reader.SceneBundle`) and the manifest
+#: paths of ground-truth files: only core.synth (and the format layer core.bundle, which defines and
+#: validates them) may use them.
+_GT_READERS = {"load_ground_truth", "load_envmap", "load_relit_frame"}
+
+
+def _ground_truth_uses(path: Path) -> list[str]:
+    """``file:line name`` of every call of a ground-truth reader, and every read of a ground-truth
+    file path (``<x>.ground_truth.envmap`` / ``.relit`` / ``<frame>.ground_truth`` handed to a file
+    reader), in one source file."""
+    import ast
+
+    tree = ast.parse(path.read_text(), str(path))
+    name = path.relative_to(REPO) if path.is_relative_to(REPO) else path.name
+    out = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.func.attr in _GT_READERS:
+            out.append(f"{name}:{node.lineno} {node.func.attr}()")
+        if (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.func.attr == "path"
+                and node.args and "ground_truth" in ast.unparse(node.args[0])):
+            out.append(f"{name}:{node.lineno} path({ast.unparse(node.args[0])})")
+    return out
+
+
+def test_only_core_synth_reads_ground_truth():
+    """No module outside core.synth (and the bundle format, benchmarks/ and tests/) reads a bundle's
+    ground truth; core.synth is imported only by the commands that show it (a contract above)."""
+    allowed = (REPO / "core" / "synth", REPO / "core" / "bundle")
+    found = []
+    for pkg in ("core", "worker", "services", "api_schemas"):
+        for p in sorted((REPO / pkg).rglob("*.py")):
+            if not any(p.is_relative_to(a) for a in allowed):
+                found += _ground_truth_uses(p)
+    assert found == [], found
+    # and the scan sees what it looks for
+    uses = _ground_truth_uses(REPO / "core" / "synth" / "evaluate.py")
+    assert any("load_ground_truth()" in u for u in uses) and any("load_relit_frame()" in u for u in uses)
+
+
+def test_the_ground_truth_scan_sees_a_path_read(tmp_path):
+    p = tmp_path / "probe.py"
+    p.write_text("def f(b, fr, m):\n    b.path(fr.ground_truth)\n    return b.path(m.ground_truth.envmap)\n")
+    assert [u.split(" ", 1)[1] for u in _ground_truth_uses(p)] == ["path(fr.ground_truth)",
+                                                                     "path(m.ground_truth.envmap)"]

@@ -1,5 +1,5 @@
-"""The ``render`` job type: the scene's frames exported as multi-layer EXR (HDR beauty and
-G-buffers), an MP4 and a PNG preview (:func:`core.export.export_frames`), uploaded as artifacts."""
+"""The ``render`` job type: the scene's captured frames exported as EXR (linearised HDR; never the
+ground truth), an MP4 and a PNG preview (:func:`core.export.export_frames`), uploaded as artifacts."""
 
 from __future__ import annotations
 

@@ -306,9 +306,9 @@ class ReconstructRequest(Model):
 
 
 class RenderRequest(Model):
-    """``POST /scenes/{id}/render``: export the scene's frames (today: the stored HDR frames and
-    G-buffers, or the linearised LDR frames of a real capture) as multi-layer EXR, MP4 and a PNG
-    preview. The reconstruct-then-relight pipeline renders into the same layout."""
+    """``POST /scenes/{id}/render``: export the scene's captured frames (linearised from the
+    stored LDR images, never the ground truth of a generated scene) as EXR, MP4 and a PNG preview.
+    The reconstruct-then-relight pipeline renders into the same layout."""
 
     split: Literal["all", "train", "test"] = "all"
     fps: float = Field(10.0, gt=0.0, le=240.0, allow_inf_nan=False)

@@ -224,6 +224,22 @@ class SceneBundle:
                 return read_envmap(self.path(r.envmap))
         raise BundleError(f"no relit set named {relit_name!r}", MANIFEST_NAME, "ground_truth.relit")
 
+    def load_relit_frame(self, relit_name: str, frame_id: str) -> np.ndarray:
+        """Ground-truth HDR beauty [H, W, 3] float32 of frame ``frame_id`` under the held-back map
+        ``relit_name`` (BundleError naming the set or the frame when the bundle has none)."""
+        gt = self.manifest.ground_truth
+        if gt is None:
+            raise BundleError("bundle has no ground truth", MANIFEST_NAME, "ground_truth")
+        rl = next((r for r in gt.relit if r.name == relit_name), None)
+        if rl is None:
+            raise BundleError(f"no relit set named {relit_name!r}", MANIFEST_NAME, "ground_truth.relit")
+        if frame_id not in rl.frames:
+            raise BundleError(f"relit set {relit_name!r} has no frame {frame_id!r}", MANIFEST_NAME,
+                              f"ground_truth.relit.{relit_name}.frames")
+        hdr = read_exr(self.path(rl.frames[frame_id]))
+        hdr = hdr["rgb"] if isinstance(hdr, dict) else hdr
+        return np.asarray(hdr, np.float32)[..., :3]
+
 
 def open_bundle(root: str | Path, validate: bool = True) -> SceneBundle:
     """Open a bundle directory. With ``validate`` every referenced file is checked first and the

@@ -9,7 +9,7 @@ normals, blurred and dropped Gaussians, noisy albedo / roughness / metallic), th
 the PBR pass at few rays per pixel under the bundle's own environment map, frame by frame with
 the bundle's cameras and times. Each frame goes to ``<bundle>/derived/pbr/<frame id>.exr``
 (beauty + G-buffers, :func:`core.pbr.render.write_frame_exr`), where
-:func:`core.gen.data.load_clips` (``forward_source="pbr"``) finds it. The Mitsuba path-traced
+:func:`core.synth.gen_data.load_clips` (``forward_source="pbr"``) finds it. The Mitsuba path-traced
 ground truth of the bundle is the target; it also carries the indirect light the PBR pass lacks.
 """
 

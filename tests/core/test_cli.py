@@ -12,18 +12,51 @@ from core.cli import main
 
 
 def test_render_writes_exr_mp4_preview(small_bundle, tmp_path, capsys):
+    """By default the captured frames, linearised: the product path reads no ground truth."""
+    from core.bundle import open_bundle
     from core.io.exr import read_exr
     from core.io.video import read_mp4_frames
+    from core.tonemap import hdr_to_ldr
 
     out = tmp_path / "out"
     assert main(["render", "--scene", str(small_bundle), "--out", str(out), "--quiet"]) == 0
     printed = capsys.readouterr().out
-    assert str(out / "frames") in printed and "preview" in printed
+    assert str(out / "frames") in printed and "preview" in printed and "captured frames" in printed
     layers = read_exr(out / "frames" / "f000.exr")
-    assert {"rgb", "albedo", "normal", "depth", "roughness", "metallic"} <= set(layers)
+    assert set(layers) == {"rgb"}
+    b = open_bundle(small_bundle)
+    m, f0 = b.manifest, b.frames()[0]
+    back = hdr_to_ldr(layers["rgb"], m.ldr_exposure, m.ldr_gamma)
+    assert np.abs(back - b.load_image(f0)).max() < 2e-3  # the stored frame, round-tripped
     frames = read_mp4_frames(out / "train.mp4")
     assert frames.shape[0] == 2
+    assert not (out / "train_gbuffers.mp4").exists() and (out / "preview.png").is_file()
+
+
+def test_render_ground_truth_exports_mitsuba_layers(small_bundle, tmp_path, capsys):
+    from core.io.exr import read_exr
+
+    out = tmp_path / "out"
+    assert main(["render", "--scene", str(small_bundle), "--out", str(out), "--ground-truth", "--quiet"]) == 0
+    assert "ground-truth HDR beauty + G-buffer layers" in capsys.readouterr().out
+    layers = read_exr(out / "frames" / "f000.exr")
+    assert {"rgb", "albedo", "normal", "depth", "roughness", "metallic"} <= set(layers)
     assert (out / "train_gbuffers.mp4").is_file() and (out / "preview.png").is_file()
+
+
+def test_render_ground_truth_of_a_capture_is_a_clear_error(small_bundle, tmp_path, capsys):
+    import json
+    import shutil
+
+    cap = tmp_path / "capture"
+    shutil.copytree(small_bundle, cap)
+    d = json.loads((cap / "bundle.json").read_text())
+    d.pop("ground_truth", None)
+    for f in d["frames"]:
+        f.pop("ground_truth", None)
+    (cap / "bundle.json").write_text(json.dumps(d))
+    assert main(["render", "--scene", str(cap), "--out", str(tmp_path / "o"), "--ground-truth", "--quiet"]) == 2
+    assert "--ground-truth" in capsys.readouterr().err and not (tmp_path / "o").exists()
 
 
 def test_render_archive(small_bundle, tmp_path):

@@ -33,6 +33,14 @@ def test_roundtrip_fields(small_bundle):
     np.testing.assert_allclose(car.poses[2][:3, 3], [7.0, 2.0, 0.75])
     assert b.load_envmap().shape == (16, 32, 3)
     np.testing.assert_allclose(b.load_envmap("const2"), 2.0)
+    (rl,) = m.ground_truth.relit
+    fid = next(iter(rl.frames))
+    relit = b.load_relit_frame(rl.name, fid)
+    assert relit.shape == (24, 32, 3) and relit.dtype == np.float32 and np.isfinite(relit).all()
+    with pytest.raises(BundleError, match="no relit set named 'nope'"):
+        b.load_relit_frame("nope", fid)
+    with pytest.raises(BundleError, match="has no frame 'f999'"):
+        b.load_relit_frame(rl.name, "f999")
 
 
 @pytest.mark.parametrize("suffix", [".zip", ".tar.gz"])

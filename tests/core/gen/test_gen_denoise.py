@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from core.errors import ConfigError, ModelLoadError, NumericalError, ShapeError
-from core.gen.data import degrade_mc
+from core.synth.gen_data import degrade_mc
 from core.gen.denoise import DenoiseSettings, denoise
 from core.gen.edm import SamplerSettings
 from core.tonemap import hdr_to_ldr

@@ -193,8 +193,8 @@ def test_the_full_pipeline_learns_more_than_the_colour_only_stage(tmp_path):
     and measured in benchmarks/results/occluders.json): with 4 frames a column stands on a handful
     of facade Gaussians, and the colour-only row's relit FLIP varied 0.26-0.33 between two runs
     with them (0.40 without; the full row's 0.29 with them, 0.36 without)."""
-    from core.evaluate import EvalSettings, evaluate_run
     from core.synth import generate_scene, profile
+    from core.synth.evaluate import EvalSettings, evaluate_run
 
     scene = generate_scene(profile("tiny", width=96, height=64, num_frames=4, spp=16), tmp_path / "s",
                            progress=False, workers=1)

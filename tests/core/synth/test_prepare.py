@@ -11,7 +11,7 @@ import torch
 
 from core.bundle import open_bundle
 from core.errors import ConfigError, FormatError
-from core.gen.data import DataSettings, load_clips
+from core.synth.gen_data import DataSettings, load_clips
 from core.synth.prepare import PerturbSettings, perturb_gaussians, render_pbr_inputs
 from core.gaussians import Gaussians
 from core.io.exr import read_exr

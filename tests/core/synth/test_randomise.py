@@ -412,7 +412,7 @@ def test_training_loader_reads_a_randomised_bundle(tiny_random_scene):
     oracle inputs, which rebuild the fixed street, refuse them by name."""
     from core.bundle import open_bundle
     from core.errors import FormatError
-    from core.gen.data import DataSettings, load_clips
+    from core.synth.gen_data import DataSettings, load_clips
     from core.synth.prepare import synth_config_of
 
     _, cfg, root = tiny_random_scene

@@ -1,8 +1,9 @@
 """Evaluation of a reconstruction against a bundle's ground truth (the paper's metrics).
 
-This is the one module of the library that reads ground truth on purpose: ``brdf evaluate RUN``.
-The product path (the stages, relight, night) never calls it. Metrics, on the bundle's **test**
-trajectory (novel views):
+``brdf evaluate RUN``. It lives in :mod:`core.synth`, the one package that reads ground truth (the
+generator, and what measures or trains against its ground truth); the product path (the stages,
+relight, night, the service) never imports it (an import-linter contract). Metrics, on the
+bundle's **test** trajectory (novel views):
 
 * intrinsics on non-sky pixels (ground-truth depth > 0): albedo si-PSNR (per-channel
   least-squares scale), roughness and metallic RMSE, normal mean angular error (degrees), from the
@@ -33,9 +34,11 @@ import torch
 from core.bundle import open_bundle
 from core.camera import Camera
 from core.errors import ConfigError
+from core.io.envmap_file import read_envmap
 from core.lighting.prior import brightest_direction, sun_direction_error_deg
 from core.metrics import angular_error_deg, psnr, si_psnr, ssim
 from core.numerics import OPACITY_EPS
+from core.pbr.envmap import resample
 from core.raster import RasterSettings, rasterize_gaussians
 from core.render.scenario import Scenario, render_scenario, views_from_frames
 from core.stages.chain import RunDir
@@ -85,6 +88,13 @@ def _img_metrics(pred: np.ndarray, ref: np.ndarray, with_flip: bool) -> dict:
 def _mean(rows: list[dict]) -> dict:
     keys = {k for r in rows for k in r}
     return {k: float(np.mean([r[k] for r in rows if k in r])) for k in sorted(keys)}
+
+
+def relit_reference_ldr(bundle, relit_name: str, frame_id: str) -> np.ndarray:
+    """The Mitsuba reference of frame ``frame_id`` under the held-back map ``relit_name``,
+    tone-mapped with the bundle's exposure and gamma: [H, W, 3] in [0, 1]."""
+    m = bundle.manifest
+    return hdr_to_ldr(bundle.load_relit_frame(relit_name, frame_id), m.ldr_exposure, m.ldr_gamma)
 
 
 def evaluate_run(run_dir: str | Path, bundle=None, settings: EvalSettings | None = None, *,
@@ -157,14 +167,10 @@ def evaluate_run(run_dir: str | Path, bundle=None, settings: EvalSettings | None
         return list(r.result.frames)
 
     if env_path is not None:
-        from core.io.envmap_file import read_envmap
-
         env_rec = read_envmap(env_path)
         frames_rr = pbr_clip(env_rec, test)
         res["rerender"] = _mean([_img_metrics(p, b.load_image(f), False) for p, f in zip(frames_rr, test)])
         gt_env = b.load_envmap()
-        from core.pbr.envmap import resample
-
         gt_full = resample(torch.from_numpy(np.asarray(gt_env, np.float64)), 512, 1024).numpy()
         rec_full = resample(torch.from_numpy(np.asarray(env_rec, np.float64)), 512, 1024).numpy()
         res["sun_error_deg"] = float(sun_direction_error_deg(brightest_direction(rec_full), brightest_direction(gt_full)))
@@ -178,11 +184,7 @@ def evaluate_run(run_dir: str | Path, bundle=None, settings: EvalSettings | None
         preds = pbr_clip(b.load_envmap(rl.name), frames)
         rows = []
         for p, f in zip(preds, frames):
-            from core.io.exr import read_exr
-
-            ref_hdr = read_exr(b.path(rl.frames[f.id]))
-            ref_hdr = ref_hdr["rgb"] if isinstance(ref_hdr, dict) and "rgb" in ref_hdr else ref_hdr
-            ref = hdr_to_ldr(np.asarray(ref_hdr, np.float32)[..., :3], ex, gamma)
+            ref = relit_reference_ldr(b, rl.name, f.id)
             rows.append(_img_metrics(p, ref, s.flip))
             unrelit.append(_img_metrics(b.load_image(f), ref, False)["ssim"])
         relit[rl.name] = _mean(rows)

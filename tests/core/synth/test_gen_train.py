@@ -8,17 +8,27 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from core.errors import ConfigError
 from core.gen.contract import GBUFFER_SLICES
-from core.gen.data import ClipDataset, DataSettings, load_clips, split_bundles
 from core.gen.nets import UNetSettings
 from core.gen.runtime import load_model
-from core.gen.train import TrainSettings, train_model
+from core.synth.gen_data import ClipDataset, DataSettings, load_clips, split_bundles
+from core.synth.gen_train import TrainSettings, train_model
 
 REPO = Path(__file__).resolve().parents[3]
 SCENE = REPO / "data" / "scenes" / "default"
 TINY_NET = UNetSettings(base_channels=8, emb_dim=32, env_channels=8)
+
+
+@pytest.fixture(autouse=True)
+def _one_torch_thread():
+    """torch's OpenMP threads spin and steal cores from other processes (as in tests/core/gen)."""
+    prev = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(prev)
 
 
 @pytest.fixture(scope="module")
@@ -84,7 +94,7 @@ def test_fine_tuning_starts_from_the_exported_weights(tmp_path):
 
     from core.errors import ModelLoadError
     from core.gen.nets import build_model, export_onnx
-    from core.gen.train import load_onnx_weights
+    from core.synth.gen_train import load_onnx_weights
 
     torch.manual_seed(1)
     src = build_model("inverse_gbuffer", TINY_NET)

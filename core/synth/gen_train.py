@@ -1,5 +1,6 @@
 """Training of the forward and inverse EDM denoisers on CPU, with checkpoints, ONNX export and a
-model card (reproducible training, models/README.md).
+model card (reproducible training, models/README.md). Trains on generated bundles' ground truth
+(:mod:`core.synth.gen_data`); the inference side is :mod:`core.gen`.
 
     res = train_model("forward_denoiser", ["scenes/s1", "scenes/s2"], "runs/fwd", steps=20000,
                       settings=TrainSettings(data=DataSettings(forward_source="pbr",
@@ -40,7 +41,7 @@ import torch
 
 from core.errors import ConfigError, ModelLoadError, NumericalError
 from core.gen import contract as C
-from core.gen.data import ClipDataset, DataSettings, load_clips, split_bundles
+from core.synth.gen_data import ClipDataset, DataSettings, load_clips, split_bundles
 from core.gen.edm import GENERATE_SAMPLER, OnnxDenoiser, SamplerSettings, flicker, generate, sdedit
 from core.gen.nets import UNetSettings, build_model, count_parameters, export_onnx
 from core.gen.runtime import load_model

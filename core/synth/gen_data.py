@@ -1,4 +1,6 @@
-"""Training data of the generative models, read from scene bundles (:mod:`core.bundle`).
+"""Training data of the generative models, read from generated scene bundles' ground truth
+(:mod:`core.bundle`); in :mod:`core.synth` because it reads ground truth, which the product path
+never does.
 
 A *clip* is the frames of one trajectory (``train`` or ``test`` split) of one bundle, in time
 order. Every frame is converted once into the contracts' data spaces (:mod:`core.gen.encoding`),
