@@ -14,6 +14,7 @@ import math
 
 import numpy as np
 
+from core.camera import Camera
 from core.errors import ConfigError
 from core.lighting.prior import LightingEstimate, LightingSettings, estimate_lighting, numpy_visibility
 from core.numerics import safe_normalize_np
@@ -53,13 +54,12 @@ def estimate_from_bundle(root, split: str = "train", settings: LightingSettings 
     frames = sorted(b.frames(split), key=lambda fr: fr.time_index)
     if not frames:
         raise ConfigError(f"{root}: no frames in split {split!r}")
-    cam = b.camera(frames[0])
     rng = np.random.default_rng(seed)
-    imgs, poses, skies, deps, nrms, albs, rough, metal = [], [], [], [], [], [], [], []
+    imgs, cams, skies, deps, nrms, albs, rough, metal = [], [], [], [], [], [], [], []
     for fr in frames:
         gt = b.load_ground_truth(fr)
         imgs.append(b.load_image(fr))
-        poses.append(fr.cam_to_world)
+        cams.append(Camera.from_bundle(b.camera(fr), fr))
         sk = b.load_sky_mask(fr)
         skies.append(sk if sk is not None else gt["depth"][..., 0] <= 0)
         d = gt["depth"][..., 0].copy()
@@ -78,7 +78,7 @@ def estimate_from_bundle(root, split: str = "train", settings: LightingSettings 
         rough.append(gt["roughness"][..., 0])
         metal.append(gt["metallic"][..., 0])
     m = b.manifest
-    return estimate_lighting(np.stack(imgs), np.stack(poses), (cam.fx, cam.fy, cam.cx, cam.cy), np.stack(skies),
+    return estimate_lighting(np.stack(imgs), Camera.stack(cams), np.stack(skies),
                              np.stack(deps), np.stack(nrms).astype(np.float32),
                              albedo=np.stack(albs) if use_albedo else None, exposure=m.ldr_exposure,
                              gamma=m.ldr_gamma, settings=settings, visibility=visibility,

@@ -44,8 +44,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from core.conventions import (camera_ray_directions, envmap_directions, envmap_solid_angles, pixel_to_direction,
-                              project_points)
+from core.camera import Camera
+from core.conventions import envmap_directions, envmap_solid_angles, pixel_to_direction, project_points
 from core.errors import ConfigError, ShapeError
 from core.gen.encoding import area_downsample
 from core.lighting.sky_transport import ALBEDO_FLOOR, SkyTransport, TransportSettings, paper_brdf_weights
@@ -246,14 +246,36 @@ def envmap_log_error(est, gt, low_res: tuple[int, int] = (64, 128)) -> dict:
 # the estimate
 # ---------------------------------------------------------------------------------------------
 
-def _check_inputs(frames, poses, sky, depth, normals):
+def _camera_batch(cameras, t: int, h: int, w: int, name: str = "cameras") -> Camera:
+    """``cameras`` (a batched :class:`Camera` or a sequence of single ones) as one batch of ``t``
+    cameras of image size ``w`` x ``h``; errors name ``name``."""
+    if not isinstance(cameras, Camera):
+        if isinstance(cameras, (str, bytes)) or not hasattr(cameras, "__iter__"):
+            raise ConfigError(f"{name}: expected a batched Camera or a sequence of Camera, "
+                              f"got {type(cameras).__name__}")
+        cams = list(cameras)
+        if not cams or not all(isinstance(c, Camera) for c in cams):
+            raise ConfigError(f"{name}: expected a batched Camera or a non-empty sequence of Camera")
+        if len({(c.width, c.height) for c in cams}) != 1:
+            raise ShapeError(f"{name}: the frames' cameras have different image sizes")
+        cameras = Camera.stack(cams)
+    if not cameras.is_batched:
+        raise ShapeError(f"{name}: expected a batch of {t} cameras (one per frame), got one camera "
+                         f"(Camera.stack a camera per frame)")
+    if len(cameras) != t:
+        raise ShapeError(f"{name}: expected {t} cameras (one per frame), got {len(cameras)}")
+    if (cameras.height, cameras.width) != (h, w):
+        raise ShapeError(f"{name}: image size {cameras.width}x{cameras.height} does not match the "
+                         f"frames' {w}x{h} (width x height)")
+    return cameras
+
+
+def _check_inputs(frames, cameras, sky, depth, normals):
     f = require_finite_np(np.asarray(frames, np.float32), "frames")
     if f.ndim != 4 or f.shape[-1] != 3:
         raise ShapeError(f"frames: expected [T, H, W, 3] LDR, got {f.shape}")
     t, h, w, _ = f.shape
-    p = require_finite_np(np.asarray(poses, np.float64), "cam_to_world")
-    if p.shape != (t, 4, 4):
-        raise ShapeError(f"cam_to_world: expected [{t}, 4, 4], got {p.shape}")
+    p = _camera_batch(cameras, t, h, w)
     s = np.asarray(sky).astype(bool)
     if s.shape != (t, h, w):
         raise ShapeError(f"sky_masks: expected [{t}, {h}, {w}], got {s.shape}")
@@ -409,17 +431,29 @@ def compose_envmap(coeffs, sun_dir, sun_irradiance, ground, height: int = 512) -
     return env.astype(np.float32)
 
 
-def observed_radiance_lookup(cam_to_world, intrinsics, depth, radiance, invalid, rel_tol: float = 0.05,
-                             abs_tol_m: float = 0.15):
+def observed_radiance_lookup(cameras, depth, radiance, invalid, rel_tol: float = 0.05, abs_tol_m: float = 0.15):
     """``radiance_at(points [M, 3]) -> (L [M], known [M] bool)``: the radiance the frames saw at
     world points (metres), from the first frame whose depth map holds the point (|z - depth| <=
     rel_tol z + abs_tol_m) at a valid pixel (``invalid`` [T, H, W]: sky or clipped).
 
-    cam_to_world: [T, 4, 4] OpenCV; intrinsics (fx, fy, cx, cy); depth: [T, H, W] camera
-    z-depth, metres; radiance: [T, H, W] linear."""
-    poses = np.asarray(cam_to_world, np.float64)
-    fx, fy, cx, cy = map(float, intrinsics)
+    cameras: the ``T`` frames' cameras, a batched :class:`core.camera.Camera` (or a sequence of
+    single ones) of image size W x H (OpenCV camera axes, world metres); depth: [T, H, W] camera
+    z-depth, metres; radiance: [T, H, W] linear; invalid: [T, H, W] bool.
+
+    Raises :class:`ShapeError` when the cameras, ``radiance`` or ``invalid`` do not match
+    ``depth`` [T, H, W] (each named)."""
+    depth = np.asarray(depth)
+    if depth.ndim != 3:
+        raise ShapeError(f"depth: expected [T, H, W] camera z-depth, got {depth.shape}")
     t_n, h, w = depth.shape
+    radiance, invalid = np.asarray(radiance), np.asarray(invalid)
+    for name, a in (("radiance", radiance), ("invalid", invalid)):
+        if a.shape != depth.shape:
+            raise ShapeError(f"{name}: expected [{t_n}, {h}, {w}] like depth, got {a.shape}")
+    cams = _camera_batch(cameras, t_n, h, w)
+    poses = cams.pose_numpy()
+    # per frame (fx, fy, cx, cy) in pixels, as Python floats
+    intr = [tuple(float(cams.K[t, i, j]) for i, j in ((0, 0), (1, 1), (0, 2), (1, 2))) for t in range(t_n)]
 
     def radiance_at(points):
         pts = np.asarray(points, np.float64).reshape(-1, 3)
@@ -429,7 +463,7 @@ def observed_radiance_lookup(cam_to_world, intrinsics, depth, radiance, invalid,
             todo = np.flatnonzero(~known)
             if not len(todo):
                 break
-            uv, z = project_points(pts[todo], poses[t], fx, fy, cx, cy)
+            uv, z = project_points(pts[todo], poses[t], *intr[t])
             front = (z > 1e-3) & np.isfinite(uv).all(-1)
             uv = np.floor(np.where(front[:, None], uv, -1.0)).astype(np.int64)
             u, v = uv[:, 0], uv[:, 1]
@@ -443,7 +477,7 @@ def observed_radiance_lookup(cam_to_world, intrinsics, depth, radiance, invalid,
     return radiance_at
 
 
-def estimate_lighting(frames_ldr, cam_to_world, intrinsics, sky_masks, depth, normals, *,
+def estimate_lighting(frames_ldr, cameras, sky_masks, depth, normals, *,
                       albedo=None, exposure: float = 1.0, gamma: float = 2.2,
                       settings: LightingSettings | None = None, visibility=None, roughness=None,
                       metallic=None) -> LightingEstimate:
@@ -451,8 +485,9 @@ def estimate_lighting(frames_ldr, cam_to_world, intrinsics, sky_masks, depth, no
 
     Args:
         frames_ldr: [T, H, W, 3] LDR in [0, 1] (the captured frames).
-        cam_to_world: [T, 4, 4] OpenCV camera poses.
-        intrinsics: (fx, fy, cx, cy) in pixels (one camera).
+        cameras: the frames' cameras, a batch of ``T`` :class:`core.camera.Camera` of image size
+            W x H (``Camera.stack`` of one per frame, or that sequence itself): OpenCV camera
+            axes, world metres, intrinsics in pixels.
         sky_masks: [T, H, W] bool, True = sky.
         depth: [T, H, W] camera z-depth in metres of the reconstruction (0 / sky ignored).
         normals: [T, H, W, 3] world normals of the reconstruction.
@@ -471,13 +506,13 @@ def estimate_lighting(frames_ldr, cam_to_world, intrinsics, sky_masks, depth, no
         :class:`LightingEstimate` (envmap 512x1024 by default).
     """
     s = settings or LightingSettings()
-    f, poses, sky, dep, nrm = _check_inputs(frames_ldr, cam_to_world, sky_masks, depth, normals)
+    f, cams, sky, dep, nrm = _check_inputs(frames_ldr, cameras, sky_masks, depth, normals)
     t, h, w, _ = f.shape
-    fx, fy, cx, cy = map(float, intrinsics)
+    poses = cams.pose_numpy()
     rng = np.random.default_rng(s.seed)
     rad = np.power(f.astype(np.float64), gamma) / exposure
     sat = f >= s.saturation
-    rays = np.stack([camera_ray_directions(poses[i], fx, fy, cx, cy, w, h) for i in range(t)])
+    rays = np.stack([c.ray_directions() for c in cams])
     diag: dict = {}
 
     # --- sky observations
@@ -538,7 +573,7 @@ def estimate_lighting(frames_ldr, cam_to_world, intrinsics, sky_masks, depth, no
             sky_low = np.where(sky_sat, (s.saturation ** gamma) / exposure, sky_rad).mean(-1)
             seen = None
             if vis_of is not None and s.transport.interreflection:
-                seen = observed_radiance_lookup(poses, (fx, fy, cx, cy), dep, rad.mean(-1), sky | sat.any(-1))
+                seen = observed_radiance_lookup(cams, dep, rad.mean(-1), sky | sat.any(-1))
             weights, brdf = None, "lambert"
             if s.surface_brdf == "paper" and albedo is not None and "roughness" in mats:
                 met = mats["metallic"][surf][pick] if "metallic" in mats else np.zeros(len(pick))

@@ -44,7 +44,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from core.errors import ConfigError
+from core.camera import Camera
+from core.errors import ConfigError, ShapeError
 from core.pbr import _native
 from core.pbr.envmap import EnvironmentMap
 
@@ -218,7 +219,7 @@ def integrate(points, normals, wo, albedo, roughness, metallic, env: NativeEnv, 
               n_env: int, n_brdf: int, specular: float = 1.0, normal_offset: float = 0.02, seed: int = 0,
               batch: int = 1 << 30, adapt_tol: float = 0.0, adapt_min_batches: int = 2, exposure: float = 1.0,
               gamma: float = 2.2, weight=None, background_lum=None, depth=None, cull_lights: bool = True,
-              cache: VisibilityCache | None = None, fx: float = 1.0, threads: int = 0,
+              cache: VisibilityCache | None = None, camera: Camera | None = None, threads: int = 0,
               ids=None, cache_bvhs: int | None = None, mis_min_brdf: float = 0.0,
               roulette: float = 0.0, cache_check: float = 0.0, on_object=None) -> IntegratorOutput:
     """Run the fused kernel on ``P`` shading points (world frame, metres; see the module
@@ -229,7 +230,10 @@ def integrate(points, normals, wo, albedo, roughness, metallic, env: NativeEnv, 
     an edited object, whose rays cross every tracer from its ``t_min_on_objects``, so an object
     tracer's small ``t_min`` darkens what the object shadows, not the object itself. ``weight``
     (opacity) and ``background_lum`` (luminance of ``(1-O) E(wo)``) only feed the adaptive
-    criterion; ``depth`` (camera z) and ``fx`` only the cache cells; ``ids`` (int, ``[P]``)
+    criterion; ``depth`` (``[P]``, metres, z along the optical axis of ``camera``) and ``camera``
+    (one :class:`core.camera.Camera`, the view the points were shaded for: its focal length ``fx``
+    in pixels turns ``cache_cell_px`` into a world size, depth / fx metres per pixel) only size the
+    cache cells (``camera`` is required with ``cache``, unused without); ``ids`` (int, ``[P]``)
     selects each point's random stream (pass pixel indices so a pixel draws the same samples
     whichever subset is shaded; default: the point's index); ``cache_bvhs``: how
     many leading ``tracers`` are static (their visibility may be cached; the others, moving
@@ -246,6 +250,14 @@ def integrate(points, normals, wo, albedo, roughness, metallic, env: NativeEnv, 
     using the cache (0: cached values are used as they are, shadows blurred to the cell size)."""
     from core.pbr.visibility import TraceSettings, default_threads
 
+    if camera is not None:
+        if not isinstance(camera, Camera):
+            raise ConfigError(f"camera: expected a core.camera.Camera, got {type(camera).__name__}")
+        if camera.is_batched:
+            raise ShapeError(f"camera: expected one camera, got a batch of {len(camera)}")
+    elif cache is not None:
+        raise ConfigError("camera: required with cache (its focal length sizes the cache cells)")
+    fx = camera.fx if camera is not None else 1.0
     pos = _np(points).reshape(-1, 3)
     p = len(pos)
     nrm, wo_, alb = (_np(x).reshape(-1, 3) for x in (normals, wo, albedo))

@@ -371,7 +371,7 @@ def render_pbr(gbuf, camera, env: EnvironmentMap, *, settings: PBRSettings | Non
                         batch=s.adaptive_batch if s.adaptive else (1 << 30), adapt_tol=s.adaptive_tol if s.adaptive else 0.0,
                         adapt_min_batches=s.adaptive_min_batches, exposure=s.exposure, gamma=s.gamma,
                         weight=si.opacity[sel, 0], background_lum=bg, depth=si.depth[sel, 0],
-                        cull_lights=s.cull_lights, cache=context.cache if context else None, fx=cam.fx,
+                        cull_lights=s.cull_lights, cache=context.cache if context else None, camera=cam,
                         threads=s.threads, ids=sel, roulette=s.roulette, cache_check=s.cache_check,
                         cache_bvhs=1 if (tr and context is not None and context.static_tracer is not None) else 0,
                         on_object=on_objects(si.points[sel], object_boxes) if object_boxes and tr else None)

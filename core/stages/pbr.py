@@ -206,13 +206,12 @@ def _prior(frames: list[_FrameData], bundle, height: int, tracer=None, search_su
     with cast shadows traced through the reconstruction's static Gaussians (``tracer``).
     ``search_sun`` False: no surface sample is given (depth 0 everywhere), so the estimate runs
     no sun search and is the sky fit alone."""
-    imgs, poses, skies, deps, nrms, albs = [], [], [], [], [], []
+    imgs, skies, deps, nrms, albs = [], [], [], [], []
     for f in frames:
         h, w = f.camera.height, f.camera.width
         o = f.gbuf["opacity"].reshape(h, w, 1).double()
         inv = torch.where(o > 1e-3, 1.0 / torch.where(o > 1e-3, o, torch.ones_like(o)), torch.zeros_like(o))
         imgs.append(f.target.reshape(h, w, 3).numpy())
-        poses.append(f.camera.pose_numpy())
         sky = (o[..., 0] < 0.5).numpy()
         skies.append(sky)
         deps.append(np.where(sky | (not search_sun), 0.0, (f.gbuf["depth"].double() * inv)[..., 0].numpy()))
@@ -220,9 +219,8 @@ def _prior(frames: list[_FrameData], bundle, height: int, tracer=None, search_su
         n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-9)
         nrms.append(n.numpy().astype(np.float32))
         albs.append((f.gbuf["albedo"].double() * inv).clamp(0, 1).numpy())
-    c = frames[0].camera
     m = bundle.manifest
-    return estimate_lighting(np.stack(imgs), np.stack(poses), (c.fx, c.fy, c.cx, c.cy), np.stack(skies),
+    return estimate_lighting(np.stack(imgs), Camera.stack([f.camera for f in frames]), np.stack(skies),
                              np.stack(deps), np.stack(nrms), albedo=np.stack(albs), exposure=m.ldr_exposure,
                              gamma=m.ldr_gamma,
                              # the transport sun model is measured with the true meshes as

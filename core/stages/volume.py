@@ -476,10 +476,9 @@ def run_volume(bundle: SceneBundle, cfg: VolumeSettings, out_dir: str | Path | N
             sky_opt.step()
             in_window = cfg.densify_from <= it <= cfg.densify_until
             if in_window and world.means.grad is not None:
-                w2c = torch.linalg.inv(v.camera.cam_to_world.double())
                 for ci, start, cnt in spans:
                     dens[ci].accumulate(world.means.grad[start:start + cnt], world.means.detach()[start:start + cnt],
-                                        w2c, v.camera.fx, v.camera.fy, v.camera.width, v.camera.height)
+                                        v.camera)
             if in_window and it % cfg.densify_every == 0:
                 for ci, (o, dc) in enumerate(zip(opts, dens)):
                     others = sum(x.g.num for x in opts) - o.g.num  # one cap for the whole scene

@@ -9,6 +9,8 @@ from dataclasses import dataclass
 
 import torch
 
+from core.camera import Camera
+from core.errors import ConfigError, ShapeError
 from core.gaussians import Gaussians, _logit
 from core.rotations import quat_to_rotmat
 from core.train.optim import GaussianAdam
@@ -48,15 +50,28 @@ class DensityController:
         self.count = torch.zeros(num, dtype=torch.float64)
 
     @torch.no_grad()
-    def accumulate(self, means_grad: torch.Tensor | None, means: torch.Tensor, w2c: torch.Tensor,
-                   fx: float, fy: float, width: int, height: int) -> None:
+    def accumulate(self, means_grad: torch.Tensor | None, means: torch.Tensor, camera: Camera) -> None:
         """Add the screen-space (NDC) gradient norm of each Gaussian in front of the camera.
+
+        means_grad: [N, 3] dL/dmean (world frame, per metre) or None (nothing to add); means:
+        [N, 3] Gaussian centres, world metres; camera: the one :class:`core.camera.Camera` the
+        gradient was rendered through (pose, ``fx, fy`` in pixels, image size).
 
         The rasterizer returns dL/dmean in world space; its screen-space counterpart is the
         gradient projected on the image plane scaled by depth / focal, converted to NDC units
-        (half the image = 1) like 3DGS's mean2D gradient."""
+        (half the image = 1) like 3DGS's mean2D gradient. Raises :class:`ConfigError` /
+        :class:`ShapeError` naming ``camera`` (not one Camera) or ``means_grad`` (not [N, 3] like
+        ``means``)."""
+        if not isinstance(camera, Camera):
+            raise ConfigError(f"camera: expected a core.camera.Camera, got {type(camera).__name__}")
+        if camera.is_batched:
+            raise ShapeError(f"camera: expected one camera, got a batch of {len(camera)}")
         if means_grad is None or len(means) == 0:
             return
+        if means_grad.shape != means.shape:
+            raise ShapeError(f"means_grad: expected {list(means.shape)} like means, got {list(means_grad.shape)}")
+        fx, fy, width, height = camera.fx, camera.fy, camera.width, camera.height
+        w2c = torch.linalg.inv(camera.cam_to_world.double())
         r = w2c[:3, :3].to(means.dtype)
         t = w2c[:3, 3].to(means.dtype)
         pc = means @ r.T + t

@@ -14,7 +14,7 @@ import numpy as np
 import torch
 
 from core.bundle import SceneBundle
-from core.conventions import camera_ray_directions, project_points
+from core.camera import Camera
 from core.errors import ConfigError
 from core.gaussians import Gaussians
 
@@ -86,8 +86,8 @@ def _colors(bundle: SceneBundle, pts: np.ndarray, time_indices: np.ndarray) -> t
         sel = np.nonzero((time_indices == f.time_index) & ~done)[0]
         if len(sel) == 0:
             continue
-        cam = bundle.camera(f)
-        uv, z = project_points(pts[sel], f.cam_to_world, cam.fx, cam.fy, cam.cx, cam.cy)
+        cam = Camera.from_bundle(bundle.camera(f), f)
+        uv, z = cam.project(pts[sel])
         ok = (z > 0.1) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
         if not ok.any():
             continue
@@ -102,8 +102,8 @@ def _colors(bundle: SceneBundle, pts: np.ndarray, time_indices: np.ndarray) -> t
         for f in bundle.frames("train"):
             if len(rest) == 0:
                 break
-            cam = bundle.camera(f)
-            uv, z = project_points(pts[rest], f.cam_to_world, cam.fx, cam.fy, cam.cx, cam.cy)
+            cam = Camera.from_bundle(bundle.camera(f), f)
+            uv, z = cam.project(pts[rest])
             ok = (z > 0.1) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
             if ok.any():
                 img = bundle.load_image(f)
@@ -225,10 +225,10 @@ def sweeps_from_depth(bundle: SceneBundle, depth_by_frame: dict[str, np.ndarray]
         d = depth_by_frame.get(f.id)
         if d is None:
             continue
-        c = bundle.camera(f)
+        c = Camera.from_bundle(bundle.camera(f), f)
         d = np.asarray(d, np.float64).reshape(c.height, c.width)[::stride, ::stride]
-        dirs = camera_ray_directions(f.cam_to_world, c.fx, c.fy, c.cx, c.cy, c.width, c.height)[::stride, ::stride]
-        c2w = np.asarray(f.cam_to_world, np.float64)
+        dirs = c.ray_directions()[::stride, ::stride]
+        c2w = c.pose_numpy()
         fwd = c2w[:3, 2]
         ok = (d > 0.3) & (d < max_depth_m)
         cosf = np.clip(dirs[ok] @ fwd, 1e-3, None)

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from core.camera import Camera
 from core.conventions import envmap_solid_angles
 from core.errors import ConfigError, NumericalError, ShapeError
 from core.lighting import prior as L
@@ -95,18 +96,31 @@ def test_cast_shadows_identify_the_sun_azimuth_on_a_flat_ground():
 def test_bad_inputs():
     t, h, w = 2, 8, 12
     frames = np.full((t, h, w, 3), 0.5, np.float32)
-    poses = np.stack([np.eye(4)] * t)
+    one = Camera.from_intrinsics(np.eye(4), 10, 10, 6, 4, w, h)
+    cams = Camera.stack([one] * t)
     sky = np.zeros((t, h, w), bool)
     depth = np.ones((t, h, w), np.float32)
     normals = np.zeros((t, h, w, 3), np.float32)
     with pytest.raises(ShapeError, match="sky_masks"):
-        L.estimate_lighting(frames, poses, (10, 10, 6, 4), sky[:, :4], depth, normals)
+        L.estimate_lighting(frames, cams, sky[:, :4], depth, normals)
     with pytest.raises(ShapeError, match="roughness"):
-        L.estimate_lighting(frames, poses, (10, 10, 6, 4), sky, depth, normals, roughness=np.ones((t, h, w - 1)))
+        L.estimate_lighting(frames, cams, sky, depth, normals, roughness=np.ones((t, h, w - 1)))
+    # the cameras: one per frame, of the frames' image size, a batch or a list of Camera
+    with pytest.raises(ShapeError, match="cameras: expected a batch of 2"):
+        L.estimate_lighting(frames, one, sky, depth, normals)
+    with pytest.raises(ShapeError, match="cameras: expected 2 cameras"):
+        L.estimate_lighting(frames, Camera.stack([one] * 3), sky, depth, normals)
+    with pytest.raises(ShapeError, match="cameras: image size 12x9"):
+        L.estimate_lighting(frames, Camera.stack([Camera.from_intrinsics(np.eye(4), 10, 10, 6, 4, w, h + 1)] * t),
+                            sky, depth, normals)
+    with pytest.raises(ConfigError, match="cameras"):
+        L.estimate_lighting(frames, np.stack([np.eye(4)] * t), sky, depth, normals)
+    with pytest.raises(ConfigError, match="cameras"):
+        L.estimate_lighting(frames, (10, 10, 6, 4), sky, depth, normals)
     metal = np.zeros((t, h, w, 1), np.float32)
     metal[1, 2, 3] = np.inf
     with pytest.raises(NumericalError, match="metallic"):
-        L.estimate_lighting(frames, poses, (10, 10, 6, 4), sky, depth, normals, metallic=metal)
+        L.estimate_lighting(frames, [one] * t, sky, depth, normals, metallic=metal)
     frames[0, 0, 0, 0] = np.nan
     with pytest.raises(NumericalError, match="frames"):
-        L.estimate_lighting(frames, poses, (10, 10, 6, 4), sky, depth, normals)
+        L.estimate_lighting(frames, cams, sky, depth, normals)

@@ -9,6 +9,7 @@ import math
 import numpy as np
 import pytest
 
+from core.camera import Camera
 from core.errors import ConfigError, NumericalError, ShapeError
 from core.lighting import prior as L
 from core.lighting import sky_transport as T
@@ -89,10 +90,18 @@ def test_hit_distance_and_observed_radiance():
     rad = np.full((1, 20, 30), 0.7)
     invalid = np.zeros((1, 20, 30), bool)
     invalid[0, :, :5] = True
-    look = L.observed_radiance_lookup(c2w[None], (15.0, 15.0, 15.0, 10.0), depth, rad, invalid)
-    val, known = look(np.array([[10.0, 0.0, 0.0], [6.0, 0.0, 0.0], [-10.0, 0.0, 0.0], [10.0, 8.0, 0.0]]))
-    assert known.tolist() == [True, False, False, False]  # off the surface, behind, masked
-    assert val[0] == pytest.approx(0.7)
+    cam = Camera.from_intrinsics(c2w, 15.0, 15.0, 15.0, 10.0, 30, 20)
+    pts = np.array([[10.0, 0.0, 0.0], [6.0, 0.0, 0.0], [-10.0, 0.0, 0.0], [10.0, 8.0, 0.0]])
+    for cams in (Camera.stack([cam]), [cam]):  # a batch of one camera per frame, or their list
+        val, known = L.observed_radiance_lookup(cams, depth, rad, invalid)(pts)
+        assert known.tolist() == [True, False, False, False]  # off the surface, behind, masked
+        assert val[0] == pytest.approx(0.7)
+    with pytest.raises(ShapeError, match="cameras: expected a batch of 1"):
+        L.observed_radiance_lookup(cam, depth, rad, invalid)
+    with pytest.raises(ShapeError, match="cameras: image size 30x20"):
+        L.observed_radiance_lookup([cam], depth[:, :10], rad[:, :10], invalid[:, :10])
+    with pytest.raises(ShapeError, match="invalid"):
+        L.observed_radiance_lookup([cam], depth, rad, invalid[:, :10])
 
 
 def test_mostly_clipped_patch_is_a_lower_bound():

@@ -12,7 +12,8 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from core.errors import ConfigError
+from core.camera import Camera
+from core.errors import ConfigError, ShapeError
 from core.pbr import EnvironmentMap, cook_torrance, estimate_reflected, pdf_brdf
 from core.pbr.integrator import NativeEnv, VisibilityCache, eval_brdf, integrate, trace_simd
 from core.pbr.lights import PointLight, SpotLight, direct_lighting, lights_to_world
@@ -21,6 +22,8 @@ from chi_square import chi_square_pvalue  # tests/chi_square.py
 
 D64 = torch.float64
 CITY = "data/hdri/city.exr"
+#: The view the cache tests shade for: focal length 100 px (its only use in the integrator).
+CAM_F100 = Camera.from_intrinsics(np.eye(4), 100.0, 100.0, 32.0, 32.0, 64, 64)
 
 
 def _gen(seed):
@@ -250,7 +253,7 @@ def test_visibility_cache_is_reused_and_a_static_view_repeats(city_native):
     pts = pts + torch.tensor([0.0, 0.0, 0.5], dtype=D64) + torch.arange(6, dtype=D64)[:, None] * 0.3
     tr = GaussianTracer(*_cloud(200, seed=4), settings=TraceSettings(leaf_size=16))
     cache = VisibilityCache(city_native, pool_size=256, cell_px=1.0, log2_capacity=12)
-    kw = dict(n_env=32, n_brdf=32, normal_offset=0.01, cache=cache, depth=torch.full((6,), 10.0), fx=100.0, seed=3)
+    kw = dict(n_env=32, n_brdf=32, normal_offset=0.01, cache=cache, depth=torch.full((6,), 10.0), camera=CAM_F100, seed=3)
     a = integrate(pts, n, wo, alb, rough, metal, city_native, [tr], **kw)
     b = integrate(pts, n, wo, alb, rough, metal, city_native, [tr], **kw)
     assert a.counters["cache_hits"] == 0 < a.counters["cache_lookups"]
@@ -260,6 +263,14 @@ def test_visibility_cache_is_reused_and_a_static_view_repeats(city_native):
     assert cache.entries > 0
     cache.clear()
     assert cache.entries == 0
+    # the cache cells are sized by the camera's focal length: one camera, and required with a cache
+    with pytest.raises(ConfigError, match="camera: required with cache"):
+        integrate(pts, n, wo, alb, rough, metal, city_native, [tr], n_env=4, n_brdf=0, cache=cache)
+    with pytest.raises(ConfigError, match="camera: expected a core.camera.Camera"):
+        integrate(pts, n, wo, alb, rough, metal, city_native, [tr], n_env=4, n_brdf=0, cache=cache, camera=100.0)
+    with pytest.raises(ShapeError, match="camera: expected one camera"):
+        integrate(pts, n, wo, alb, rough, metal, city_native, [tr], n_env=4, n_brdf=0, cache=cache,
+                  camera=Camera.stack([CAM_F100, CAM_F100]))
 
 
 def test_cache_check_retires_entries_crossed_by_a_shadow_edge(city_native):
@@ -280,7 +291,7 @@ def test_cache_check_retires_entries_crossed_by_a_shadow_edge(city_native):
     scales = torch.tensor([[0.06, 0.06, 0.005]], dtype=D64).expand(k, 3)
     tr = GaussianTracer(means, quats, scales, torch.full((k,), 0.99, dtype=D64), settings=TraceSettings(leaf_size=16))
     pts = torch.tensor([[1.0, 0.1, 0.1], [5.0, 0.1, 0.1]], dtype=D64)
-    kw = dict(n_env=64, n_brdf=0, normal_offset=0.01, depth=torch.full((1,), 10.0), fx=100.0)
+    kw = dict(n_env=64, n_brdf=0, normal_offset=0.01, depth=torch.full((1,), 10.0), camera=CAM_F100)
     truth = np.mean([integrate(pts[1:], n[1:], wo[1:], alb[1:], rough[1:], metal[1:], city_native, [tr], seed=s,
                                n_env=64, n_brdf=0, normal_offset=0.01).radiance for s in range(40)], 0)
     plain, checked = [], []

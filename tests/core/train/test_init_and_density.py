@@ -5,6 +5,8 @@ import pytest
 import torch
 
 from core.bundle import open_bundle
+from core.camera import Camera
+from core.errors import ConfigError, ShapeError
 from core.gaussians import Gaussians
 from core.train.density import DensityConfig, DensityController, scene_extent
 from core.train.init_lidar import LidarInitConfig, gaussians_from_lidar
@@ -52,10 +54,10 @@ def test_density_clone_split_prune_and_cap():
     dc = DensityController(DensityConfig(grad_threshold=1e-3, max_gaussians=100), scene_extent=10.0, num=10)
     grad = torch.zeros(10, 3)
     grad[0, 0] = grad[1, 0] = 1.0
-    w2c = torch.eye(4, dtype=torch.float64)
+    cam = Camera.from_intrinsics(torch.eye(4, dtype=torch.float64), 100.0, 100.0, 32.0, 32.0, 64, 64)
     means = g.means.detach().clone()
     means[:, 2] = 5.0
-    dc.accumulate(grad, means, w2c, 100.0, 100.0, 64, 64)
+    dc.accumulate(grad, means, cam)
     stats = dc.densify_and_prune(opt, prune_large=False)
     assert stats == {"cloned": 1, "split": 1, "pruned": 1, "total": 10 - 2 + 1 + 2}
     assert opt.g.num == 11 and opt.m["means"].shape == (11, 3)
@@ -63,8 +65,29 @@ def test_density_clone_split_prune_and_cap():
     assert float(opt.g.scales()[-1].max()) == pytest.approx(2.0 / 1.6, rel=1e-5)
     # the cap is respected
     dc2 = DensityController(DensityConfig(grad_threshold=1e-3, max_gaussians=11), 10.0, opt.g.num)
-    dc2.accumulate(torch.ones(11, 3), torch.cat([means[:1]] * 11), w2c, 100.0, 100.0, 64, 64)
+    dc2.accumulate(torch.ones(11, 3), torch.cat([means[:1]] * 11), cam)
     assert dc2.densify_and_prune(opt, prune_large=False)["total"] <= 11 + 1  # only splits may replace
+
+
+def test_density_accumulate_is_the_screen_space_gradient_of_the_camera():
+    """The accumulated statistic is |dL/dmean projected on the image| x depth / focal x half the
+    image (3DGS's NDC mean2D gradient), with the camera's pose, fx, fy and image size."""
+    c2w = torch.eye(4, dtype=torch.float64)
+    c2w[:3, 3] = torch.tensor([1.0, -2.0, 0.5], dtype=torch.float64)
+    cam = Camera.from_intrinsics(c2w, 80.0, 120.0, 30.0, 20.0, 64, 48)
+    means = torch.tensor([[1.0, -2.0, 4.5], [1.0, -2.0, 0.6]])  # 4 m and 0.1 m in front (the 2nd not counted)
+    grad = torch.tensor([[0.3, -0.4, 2.0], [1.0, 1.0, 1.0]])
+    dc = DensityController(DensityConfig(), scene_extent=1.0, num=2)
+    dc.accumulate(grad, means, cam)
+    want = float(np.hypot(0.3 * 4.0 / 80.0 * 32, -0.4 * 4.0 / 120.0 * 24))
+    assert float(dc.grad_accum[0]) == pytest.approx(want, rel=1e-6)
+    assert dc.count.tolist() == [1.0, 0.0]
+    with pytest.raises(ConfigError, match="camera"):
+        dc.accumulate(grad, means, torch.eye(4))
+    with pytest.raises(ShapeError, match="camera"):
+        dc.accumulate(grad, means, Camera.stack([cam, cam]))
+    with pytest.raises(ShapeError, match="means_grad"):
+        dc.accumulate(grad[:1], means, cam)
 
 
 def test_adam_moves_parameters_and_survives_nan_gradients():
