@@ -22,6 +22,7 @@ from typing import Callable
 
 import numpy as np
 import torch
+from PIL import Image, ImageDraw
 
 from core.bundle import open_bundle
 from core.camera import Camera
@@ -72,8 +73,6 @@ def _colour(x: np.ndarray) -> np.ndarray:
 
 def _label(img: np.ndarray, text: str) -> np.ndarray:
     """``img`` with a caption strip above it (PIL's default bitmap font)."""
-    from PIL import Image, ImageDraw
-
     h, w = img.shape[:2]
     strip = Image.new("RGB", (w, 14), (255, 255, 255))
     ImageDraw.Draw(strip).text((3, 1), text, fill=(0, 0, 0))

@@ -22,6 +22,7 @@ import numpy as np
 import torch
 
 from core.camera import Camera
+from core.conventions import is_rigid
 from core.errors import ConfigError
 from core.gaussians import Gaussians
 from core.gen.denoise import denoise
@@ -117,7 +118,6 @@ def _explicit_poses(e: ObjectEdit, n_times: int, what: str) -> tuple[torch.Tenso
             raise ConfigError(f"{what}.poses[{k}]: expected (time_index, 4x4 obj_to_world)") from exc
         if not isinstance(t, (int, np.integer)) or not 0 <= int(t) < n_times:
             raise ConfigError(f"{what}.poses[{k}].time_index: must be an int in [0, {n_times - 1}], got {t!r}")
-        from core.conventions import is_rigid
 
         if m.shape != (4, 4) or not np.isfinite(m).all() or not is_rigid(m):
             raise ConfigError(f"{what}.poses[{k}].obj_to_world: expected a finite rigid 4x4 transform")

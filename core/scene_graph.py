@@ -25,6 +25,8 @@ import torch
 
 from core.errors import ConfigError, FormatError, NumericalError, ShapeError
 from core.gaussians import Gaussians
+from core.io.atomic import atomic_output
+from core.io.torchfile import read_torch_file
 from core.numerics import require_finite
 from core.rotations import axis_angle_to_quat, quat_mul, quat_slerp, quat_to_rotmat, rotmat_to_quat
 
@@ -279,15 +281,12 @@ class SceneGraph:
         if self.occluders is not None and self.occluders.num:
             payload["occluders"] = gd(self.occluders)
         path = Path(path)
-        from core.io.atomic import atomic_output
 
         with atomic_output(path) as tmp:
             torch.save(payload, tmp)
 
     @classmethod
     def load(cls, path: str | Path) -> "SceneGraph":
-        from core.io.torchfile import read_torch_file
-
         path = Path(path)
         d = read_torch_file(path, FORMAT_NAME, (FORMAT_VERSION,), "scene graph")
         try:

@@ -20,6 +20,18 @@ def write_small_bundle(root: Path, *, frames: int = 3, width: int = 32, height: 
 
 
 @pytest.fixture
+def one_torch_thread():
+    """One torch thread for the test (torch's OpenMP threads spin and steal cores from other
+    processes); the previous count restored after."""
+    import torch
+
+    prev = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(prev)
+
+
+@pytest.fixture
 def small_bundle(tmp_path) -> Path:
     return write_small_bundle(tmp_path / "small")
 

@@ -12,7 +12,7 @@ import logging
 import os
 import re
 import shutil
-from datetime import timedelta
+from datetime import timedelta, timezone
 
 import redis
 from rq import Queue, Worker
@@ -376,8 +376,6 @@ def waiting_jobs(db: Database) -> dict[str, dict]:
                          .where(Job.state == "queued").group_by(Job.queue)).all()
     for q, n, oldest in rows:
         if oldest is not None and oldest.tzinfo is None:
-            from datetime import timezone
-
             oldest = oldest.replace(tzinfo=timezone.utc)
         out[q] = {"count": int(n), "oldest_s": max((now - oldest).total_seconds(), 0.0) if oldest else 0.0}
     return out
@@ -409,8 +407,6 @@ def list_workers(conn: redis.Redis) -> list[dict]:
     for w in Worker.all(connection=conn):
         hb = w.last_heartbeat
         if hb is not None and hb.tzinfo is None:
-            from datetime import timezone
-
             hb = hb.replace(tzinfo=timezone.utc)
         out.append({"name": w.name, "state": str(getattr(w.get_state(), "value", w.get_state())),
                     "queues": w.queue_names(), "current_job": w.get_current_job_id(),

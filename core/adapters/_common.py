@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import TypeVar
 
 import numpy as np
+from tqdm.auto import tqdm
 
 from core.conventions import is_rigid
 from core.errors import BundleError, ConfigError
@@ -90,11 +91,7 @@ def safe_id(s: str) -> str:
 
 
 def progress(it: Iterable[T], *, enabled: bool, total: int | None = None, desc: str = "") -> Iterator[T]:
-    """Wrap ``it`` in a tqdm bar when ``enabled`` (tqdm missing = no bar)."""
+    """Wrap ``it`` in a tqdm bar when ``enabled``."""
     if not enabled:
-        return iter(it)
-    try:
-        from tqdm.auto import tqdm
-    except ImportError:  # pragma: no cover - tqdm is a project dependency
         return iter(it)
     return iter(tqdm(it, total=total, desc=desc, unit="frame", leave=False))

@@ -113,8 +113,6 @@ def _check_files(root: Path, m: Manifest) -> list[BundleIssue]:
             issues.append(BundleIssue(s.file, fld, "contains NaN or Inf"))
 
     if m.ground_truth is not None:
-        from core.io.envmap_file import read_envmap
-
         maps = [(m.ground_truth.envmap, "ground_truth.envmap")]
         maps += [(r.envmap, f"ground_truth.relit[{i}].envmap") for i, r in enumerate(m.ground_truth.relit)]
         for rel, fld in maps:

@@ -22,6 +22,7 @@ from __future__ import annotations
 import ctypes
 from pathlib import Path
 
+from core.errors import DependencyError
 from core.native_build import NativeLibrary
 
 _DIR = Path(__file__).parent
@@ -89,7 +90,5 @@ def lib() -> ctypes.CDLL:
     """The loaded kernel library (built on first call)."""
     loaded = _LIB.get()
     if loaded.bv_abi_version() != _ABI_VERSION:
-        from core.errors import DependencyError
-
         raise DependencyError("shadow-ray kernel ABI mismatch; delete the kernel cache")
     return loaded

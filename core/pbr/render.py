@@ -61,8 +61,9 @@ from core.gaussians import Gaussians
 from core.io.exr import write_exr
 from core.io.video import write_mp4
 from core.pbr.envmap import EnvironmentMap, luminance
-from core.pbr.integrator import NativeEnv, VisibilityCache
-from core.pbr.lights import lights_to_world
+from core.pbr.integrator import NativeEnv, VisibilityCache, integrate
+from core.pbr.lights import direct_lighting, lights_to_world
+from core.pbr.mis import estimate_reflected
 from core.pbr.visibility import GaussianTracer, TraceSettings
 from core.raster import RasterSettings, rasterize_gaussians
 from core.scene_graph import SceneGraph
@@ -360,8 +361,6 @@ def render_pbr(gbuf, camera, env: EnvironmentMap, *, settings: PBRSettings | Non
     lr_sel = torch.zeros(sel.numel(), 3, dtype=dt)
     samples = torch.zeros(all_idx.numel(), dtype=torch.int32)
     if s.backend == "native":
-        from core.pbr.integrator import NativeEnv, integrate
-
         nenv = context.native_env if context is not None and context.native_env is not None else NativeEnv(env)
         # the luminance of (1 - O) E(wo) only feeds the adaptive criterion: skip the lookup otherwise
         bg = luminance(env.lookup(si.view_dirs[sel]).detach()) * (1.0 - si.opacity[sel, 0]) if s.adaptive else None
@@ -379,9 +378,6 @@ def render_pbr(gbuf, camera, env: EnvironmentMap, *, settings: PBRSettings | Non
         samples[shade] = torch.from_numpy(res.samples)
         counters.update(res.counters)
     else:
-        from core.pbr.lights import direct_lighting
-        from core.pbr.mis import estimate_reflected
-
         def vis(origins, dirs, t_max=None):
             v = torch.ones(origins.shape[0], dtype=torch.float64)
             for t in tr:

@@ -35,7 +35,7 @@ from typing import Callable
 import numpy as np
 import torch
 
-from core.errors import ConfigError, FormatError, NumericalError
+from core.errors import ConfigError, FormatError, ModelLoadError, NumericalError
 from core.gen.edm import GENERATE_SAMPLER, OnnxDenoiser, SamplerSettings, generate, sdedit
 from core.gen.encoding import camera_to_world_dirs, decode_gbuffer, ldr_to_data
 from core.gen.runtime import load_model
@@ -164,8 +164,6 @@ def load_or_compute_priors(bundle, cache: str | Path, *, model: str | Path = DEF
     ``cached`` and ``seconds``."""
     model = Path(model)
     if not model.is_file():
-        from core.errors import ModelLoadError
-
         raise ModelLoadError(f"{model}: inverse G-buffer model not found (the volume stage's priors need it; "
                              f"set lambda_normal = lambda_albedo = lambda_roughness = lambda_metallic = 0 "
                              f"and lambda_prior_depth = 0 to run without priors)")

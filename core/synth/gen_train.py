@@ -38,15 +38,16 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from tqdm import tqdm
 
 from core.errors import ConfigError, ModelLoadError, NumericalError
 from core.gen import contract as C
-from core.synth.gen_data import ClipDataset, DataSettings, load_clips, split_bundles
 from core.gen.edm import GENERATE_SAMPLER, OnnxDenoiser, SamplerSettings, flicker, generate, sdedit
 from core.gen.nets import UNetSettings, build_model, count_parameters, export_onnx
 from core.gen.runtime import load_model
 from core.io.atomic import atomic_output
 from core.metrics import angular_error_deg, psnr, si_psnr
+from core.synth.gen_data import ClipDataset, DataSettings, load_clips, split_bundles
 
 
 @dataclass(frozen=True)
@@ -299,8 +300,6 @@ def train_model(kind: str, data_dirs, out_dir: str | Path, steps: int, *, settin
 
         bar = None
         if progress:
-            from tqdm import tqdm
-
             bar = tqdm(total=steps, initial=step, desc=f"train {kind}", unit="step")
         model.train()
         while step < steps:

@@ -8,19 +8,25 @@ is seeded per frame).
 from __future__ import annotations
 
 import math
+import multiprocessing as mp
 import os
+import tempfile
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
+from tqdm import tqdm
 
 from core.bundle import BundleWriter, Camera
 from core.io.hdri import HDRI_DIR, column_shift, load_hdri, resolve_hdri, rotate_equirect  # noqa: F401
 from core.synth.config import SynthConfig
 from core.synth.mitsuba_backend import RayCaster, render_beauty, render_gbuffers
 from core.synth.random_street import ego_lane_y as _y
+from core.synth.random_street import make_random_street
 from core.synth.randomise import SUNSKY, lens_k1
+from core.synth.sensor import apply_sensor, auto_exposure, source_coords, warp_bilinear
+from core.synth.sky import sun_sky_map
 from core.synth.street import EGO_LANE_Y, make_street
 from core.tonemap import hdr_to_ldr, ldr_to_uint8
 
@@ -78,8 +84,6 @@ def _street(cfg: SynthConfig):
         if cfg.scene_spec is None:
             _CACHE[key] = make_street(cfg, ego_positions(cfg))
         else:
-            from core.synth.random_street import make_random_street
-
             _CACHE[key] = make_random_street(cfg.scene_spec, ego_positions(cfg), cfg.street_length_m,
                                              cfg.frame_dt, cfg.ego_speed)
     return _CACHE[key]
@@ -91,8 +95,6 @@ def _env(name: str, rot: float, spec=None) -> np.ndarray:
     key = ("env", name, rot, spec)
     if key not in _CACHE:
         if spec is not None and name == SUNSKY:
-            from core.synth.sky import sun_sky_map
-
             _CACHE[key] = sun_sky_map(spec.sun_elevation_deg, spec.sun_azimuth_deg, spec.turbidity,
                                       height=512, intensity=spec.intensity)
         elif spec is not None:
@@ -109,8 +111,6 @@ def _render_job(job: tuple) -> tuple:
     cam_i = intrinsics(cfg)
     k1 = _k1(cfg)
     if k1:  # render a pinhole canvas covering the lens's field, then warp (core.synth.sensor)
-        from core.synth.sensor import source_coords
-
         us, vs, px, py = source_coords(cfg.width, cfg.height, cam_i.fx, k1)
         W, H = cfg.width + 2 * px, cfg.height + 2 * py
         cam = Camera.from_intrinsics(c2w, cam_i.fx, cam_i.fy, W / 2.0, H / 2.0, W, H)
@@ -124,8 +124,6 @@ def _render_job(job: tuple) -> tuple:
     spec = cfg.scene_spec if kind == "beauty" else None  # relit maps: the plain HDRIs
     img = render_beauty(parts, _env(env_name, env_rot, spec), cam, spp=spp, max_depth=cfg.max_depth, seed=seed)
     if k1:
-        from core.synth.sensor import warp_bilinear
-
         img = np.maximum(warp_bilinear(img, us, vs), 0.0)
     return kind, key, img
 
@@ -152,8 +150,6 @@ def generate_scene(cfg: SynthConfig, out_dir: str | Path, *, name: str | None = 
     Train frames follow the ego lane; test (novel-view) frames a parallel path offset by
     ``cfg.test_offset_m``; relit ground truth is rendered for test frames. Returns the bundle root.
     """
-    from tqdm import tqdm
-
     name = name or f"street_seed{cfg.seed}"
     spec = cfg.scene_spec
     env_train = _env(cfg.envmap, cfg.envmap_rotation_deg, spec)  # fail early on a bad envmap name
@@ -179,8 +175,6 @@ def generate_scene(cfg: SynthConfig, out_dir: str | Path, *, name: str | None = 
     n_workers = workers if workers is not None else min(2, os.cpu_count() or 1)
     bar = tqdm(total=len(jobs) + cfg.num_frames, desc=f"generate {name}", unit="render", disable=not progress)
     if n_workers > 1:
-        import multiprocessing as mp
-
         with ProcessPoolExecutor(n_workers, mp_context=mp.get_context("spawn")) as pool:
             for kind, key, out in pool.map(_render_job, jobs):
                 results[(kind, key)] = out
@@ -201,8 +195,6 @@ def generate_scene(cfg: SynthConfig, out_dir: str | Path, *, name: str | None = 
     # randomised scenes: auto exposure on the first train frame, offset by the spec's stops
     exposure, gamma = cfg.exposure, cfg.gamma
     if spec is not None:
-        from core.synth.sensor import auto_exposure
-
         exposure = round(auto_exposure(results[("beauty", frames[0][0])], spec.exposure_ev), 6)
     cam = intrinsics(cfg)
     street = _street(cfg)
@@ -215,8 +207,6 @@ def generate_scene(cfg: SynthConfig, out_dir: str | Path, *, name: str | None = 
                      ldr_exposure=exposure, ldr_gamma=gamma)
     tmp = None
     if spec is not None:
-        import tempfile
-
         tmp = tempfile.TemporaryDirectory(prefix="brdf-synth-")
         noise_rng = np.random.default_rng([spec.seed, 11])
     with w:
@@ -231,7 +221,6 @@ def generate_scene(cfg: SynthConfig, out_dir: str | Path, *, name: str | None = 
                 ldr = ldr_to_uint8(hdr_to_ldr(hdr, exposure, gamma))
                 w.add_frame(fid, cam.id, t, c2w, image=ldr, split=split, sky_mask=g["sky"], ground_truth=gt)
                 continue
-            from core.synth.sensor import apply_sensor
 
             ldr = apply_sensor(hdr, exposure, gamma, spec.contrast, spec.shot_noise, spec.read_noise, noise_rng)
             if spec.jpeg_quality:

@@ -106,7 +106,8 @@ def test_dashboard_end_to_end_in_chromium(settings, tmp_path, browser):
         c = httpx.Client(base_url=base, headers={"Authorization": f"Bearer {OPERATOR_KEY}"}, timeout=30)
         # big enough that the export takes several seconds even on an idle machine, so the page is
         # seen showing the job queued or running before it is done
-        z = zip_bundle(make_bundle(tmp_path / "b", frames=80, width=160, height=120, test_frames=8), tmp_path / "b.zip")
+        z = zip_bundle(make_bundle(tmp_path / "b", frames=80, width=320, height=240, test_frames=8, with_gt=False),
+                       tmp_path / "b.zip")
         sid = c.post("/scenes", content=z.read_bytes(), headers={"Content-Type": "application/zip"}).json()["id"]
 
         browser.get(base + "/dashboard")
@@ -146,7 +147,7 @@ def test_dashboard_end_to_end_in_chromium(settings, tmp_path, browser):
         WebDriverWait(browser, 20).until(lambda d: d.execute_script(
             "return arguments[0].complete && arguments[0].naturalWidth > 0", img))
         w = browser.execute_script("return arguments[0].naturalWidth", img)
-        assert w == 3 * 160, w  # the G-buffer mosaic: three frames wide
+        assert w == 320, w  # the first captured frame, full width
         # queues and workers with heartbeats
         assert browser.find_element(By.CSS_SELECTOR, "#queues tr[data-queue='render']")
         worker_rows = browser.find_elements(By.CSS_SELECTOR, "#workers tr.worker")
@@ -337,7 +338,8 @@ def test_dashboard_operations_in_chromium(settings, tmp_path, browser, tiny_scen
         gw, base = start_gateway(st, tmp_path / "gateway.log")
         procs.append(gw)
         c = httpx.Client(base_url=base, headers={"Authorization": f"Bearer {OPERATOR_KEY}"}, timeout=30)
-        z = zip_bundle(make_bundle(tmp_path / "b", frames=40, width=160, height=120, test_frames=5), tmp_path / "b.zip")
+        z = zip_bundle(make_bundle(tmp_path / "b", frames=40, width=320, height=240, test_frames=5, with_gt=False),
+                       tmp_path / "b.zip")
         sid = c.post("/scenes", content=z.read_bytes(), headers={"Content-Type": "application/zip"}).json()["id"]
         tz = zip_bundle(tiny_scene, tmp_path / "tiny.zip")
         tiny = c.post("/scenes", content=tz.read_bytes(), headers={"Content-Type": "application/zip"}).json()["id"]
@@ -384,7 +386,8 @@ def test_dashboard_operations_in_chromium(settings, tmp_path, browser, tiny_scen
         assert css("#params tr.param[data-key='split']")
 
         # 3. cancel and retry buttons go through the API
-        zb = zip_bundle(make_bundle(tmp_path / "b2", frames=120, width=160, height=120, test_frames=5, seed=1),
+        zb = zip_bundle(make_bundle(tmp_path / "b2", frames=120, width=320, height=240, test_frames=5, with_gt=False,
+                                    seed=1),
                         tmp_path / "b2.zip")  # long enough that it is still running when the button is pressed
         sid_b = c.post("/scenes", content=zb.read_bytes(), headers={"Content-Type": "application/zip"}).json()["id"]
         b = c.post(f"/scenes/{sid_b}/render", json={"fps": 5}).json()["id"]

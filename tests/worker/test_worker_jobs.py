@@ -163,7 +163,8 @@ def test_cancel_stops_a_running_job(client, app, settings, tmp_path):
     """A running job is interrupted within a heartbeat; the worker goes on to the next job."""
     from worker.queue import redis_conn, request_cancel
 
-    z = zip_bundle(make_bundle(tmp_path / "b", frames=40, width=160, height=120, test_frames=5), tmp_path / "b.zip")
+    z = zip_bundle(make_bundle(tmp_path / "b", frames=40, width=320, height=240, test_frames=5, with_gt=False),
+                   tmp_path / "b.zip")
     sid = upload(client, z)
     long_job = client.post(f"/scenes/{sid}/render", json={}).json()["id"]
     next_job = client.post(f"/scenes/{sid}/render", json={"outputs": ["png"], "split": "test"}).json()["id"]

@@ -8,11 +8,8 @@ import torch
 
 
 @pytest.fixture(autouse=True)
-def _one_torch_thread():
-    prev = torch.get_num_threads()
-    torch.set_num_threads(1)
+def _one_torch_thread(one_torch_thread):
     yield
-    torch.set_num_threads(prev)
 
 
 def randomize(model, scale: float = 0.05, seed: int = 0):

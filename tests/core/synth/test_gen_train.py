@@ -8,7 +8,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
 
 from core.errors import ConfigError
 from core.gen.contract import GBUFFER_SLICES
@@ -21,14 +20,7 @@ REPO = Path(__file__).resolve().parents[3]
 SCENE = REPO / "data" / "scenes" / "default"
 TINY_NET = UNetSettings(base_channels=8, emb_dim=32, env_channels=8)
 
-
-@pytest.fixture(autouse=True)
-def _one_torch_thread():
-    """torch's OpenMP threads spin and steal cores from other processes (as in tests/core/gen)."""
-    prev = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(prev)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture(scope="module")
