@@ -28,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from tqdm import tqdm
 
 from core.errors import ConfigError, FormatError, NumericalError
 from core.io.envmap_file import read_envmap, write_envmap
@@ -36,6 +37,7 @@ from core.pbr.envmap import EnvironmentMap, resample
 from core.pbr.render import PBRSettings, render_pbr
 from core.pbr.visibility import GaussianTracer, TraceSettings
 from core.raster import RasterSettings
+from core.scene_graph import SceneGraph
 from core.stages.early_stop import stalled
 from core.stages.volume import VolumeModel, _bce, _prior_tensors, _views, alignment_loss, lidar_depth_loss, prior_losses
 from core.train.optim import GaussianAdam, GaussianLR
@@ -118,8 +120,6 @@ def _scaled_lr(scale: float):
 def run_stage(ctx) -> dict:
     """Run the joint refinement on the latest scene graph, sky, environment map and priors of
     the run (see the module docstring)."""
-    from tqdm import tqdm
-
     cfg: JointSettings = ctx.settings
     b = ctx.bundle
     run = ctx.run
@@ -153,7 +153,6 @@ def run_stage(ctx) -> dict:
                 state = torch.load(ck / "state.pt", map_location="cpu", weights_only=True)
             except Exception as exc:  # noqa: BLE001 - a corrupt state is reported, never silently reset
                 raise FormatError(f"{ck / 'state.pt'}: unreadable joint-stage state ({exc})") from exc
-            from core.scene_graph import SceneGraph
 
             graph = SceneGraph.load(ck / state["graph_file"])
             sky.load_state_dict(state["sky"])

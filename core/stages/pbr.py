@@ -18,7 +18,7 @@ learned lighting prior does not exist yet.
 Outputs (``out_dir``): ``envmap.exr`` (the fitted ``E``, float32, 2:1 equirect in the project's
 convention), ``envmap_prior.exr`` (``E_g``), ``preview.png`` (both tone-mapped), ``summary.json``
 (losses, photometric PSNR on the sampled pixels before and after). The stage never reads the
-bundle's ground truth; ``brdf evaluate`` (:mod:`core.evaluate`) measures the sun direction error.
+bundle's ground truth; ``brdf evaluate`` (:mod:`core.synth.evaluate`) measures the sun direction error.
 """
 
 from __future__ import annotations
@@ -33,9 +33,11 @@ from typing import Callable
 
 import numpy as np
 import torch
+from tqdm import tqdm
 
 from core.camera import Camera
 from core.errors import ConfigError, FormatError, NumericalError
+from core.io.atomic import atomic_output
 from core.io.envmap_file import write_envmap
 from core.io.images import write_png
 from core.lighting.prior import LightingSettings, estimate_lighting, numpy_visibility
@@ -360,7 +362,6 @@ def fit_lighting(graph, bundle, out_dir: str | Path, cfg: PBRStageConfig | None 
         history.append(rec)
         if state_file is not None and checkpoint_every and (it + 1) % checkpoint_every == 0:
             state_file.parent.mkdir(parents=True, exist_ok=True)
-            from core.io.atomic import atomic_output
 
             with atomic_output(state_file) as tmp:
                 torch.save({"iteration": it + 1, "env": env.param.detach().clone(), "fine": fine.detach().clone(),
@@ -416,8 +417,6 @@ def run_stage(ctx) -> dict:
     total = cfg.iterations
     bar = None
     if ctx.progress:
-        from tqdm import tqdm
-
         bar = tqdm(total=total, desc="pbr", unit="it")
 
     def report(it, n, rec):

@@ -35,12 +35,15 @@ from typing import Callable
 
 import numpy as np
 import torch
+from tqdm import tqdm
 
 from core.bundle import SceneBundle
 from core.camera import Camera
 from core.errors import ConfigError, FormatError, NumericalError, ShapeError
 from core.gaussians import Gaussians
 from core.io.atomic import atomic_output
+from core.io.images import write_png
+from core.io.video import write_mp4
 from core.metrics import psnr, ssim
 from core.numerics import require_finite, safe_normalize
 from core.raster import RasterSettings, rasterize_gaussians
@@ -388,8 +391,6 @@ def run_volume(bundle: SceneBundle, cfg: VolumeSettings, out_dir: str | Path | N
     run started with a directory that holds a state resumes from it: a crashed or killed run
     continues where its last checkpoint left off. ``on_progress(it, iterations, record)`` is
     called every ``log_every`` steps (an exception raised there stops the run, e.g. a cancel)."""
-    from tqdm import tqdm
-
     if cfg.iterations < 1:
         raise ConfigError(f"iterations: must be >= 1, got {cfg.iterations}")
     torch.manual_seed(cfg.seed)
@@ -539,9 +540,6 @@ def run_volume(bundle: SceneBundle, cfg: VolumeSettings, out_dir: str | Path | N
             "validation": validation, "skips_fired": fired,
         }
         if out_dir is not None:
-            from core.io.images import write_png
-            from core.io.video import write_mp4
-
             out = Path(out_dir)
             model.save(out / "checkpoint", {"config": _cfg_dict(cfg)})
             (out / "renders").mkdir(parents=True, exist_ok=True)
