@@ -21,6 +21,7 @@ logic of its own.
 
 from __future__ import annotations
 
+import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -29,9 +30,18 @@ from typing import Callable, Sequence
 import numpy as np
 import torch
 
+from core.bundle import open_bundle
+from core.camera import Camera
 from core.errors import ConfigError
+from core.io.envmap_file import read_envmap
+from core.io.hdri import hdri_names
+from core.pbr.envmap import EnvironmentMap
+from core.pbr.lights import PointLight, SpotLight
+from core.pbr.render import ClipHook, PBRSettings
+from core.pbr.visibility import TraceSettings
 from core.relight import ObjectEdit, View
 from core.render.exposure import AutoExposure
+from core.rotations import quat_slerp, quat_to_rotmat, rotmat_to_quat
 
 DENOISERS = ("none", "oidn", "diffusion")
 
@@ -221,8 +231,6 @@ class Scenario:
 def views_from_frames(bundle, split: str = "test", start: int = 0, stop: int | None = None,
                       step: int = 1) -> list[View]:
     """Views of the capture's frames (``split``: train, test or all), sliced ``start:stop:step``."""
-    from core.camera import Camera
-
     if split not in ("train", "test", "all"):
         raise ConfigError(f"split: must be train, test or all, got {split!r}")
     if step < 1:
@@ -242,8 +250,6 @@ def views_from_frames(bundle, split: str = "test", start: int = 0, stop: int | N
 def views_from_path(bundle, camera: str, poses: Sequence[tuple], what: str = "camera_path") -> list[View]:
     """Views along a new camera path: ``poses`` = ``[(cam_to_world 4x4, time_s), ...]`` with the
     intrinsics of the scene's camera ``camera``."""
-    from core.camera import Camera
-
     cam = bundle.manifest.cameras.get(camera)
     if cam is None:
         raise ConfigError(f"{what}.camera: no camera {camera!r} in the scene (cameras: {sorted(bundle.manifest.cameras)})")
@@ -272,9 +278,6 @@ def views_from_capture(bundle, *, split: str = "train", camera: str | None = Non
     between two captured frames are interpolated (linear position, slerp rotation). Without
     ``fps`` the captured frames themselves are used (in the time range). ConfigError names the
     field."""
-    from core.camera import Camera
-    from core.rotations import quat_slerp, quat_to_rotmat, rotmat_to_quat
-
     if split not in ("train", "test", "all"):
         raise ConfigError(f"{what}.split: must be train, test or all, got {split!r}")
     frames = bundle.frames(None if split == "all" else split)
@@ -341,8 +344,6 @@ def views_from_capture(bundle, *, split: str = "train", camera: str | None = Non
 def load_path_json(bundle, path: str | Path) -> tuple[list[View], float]:
     """A camera path file: ``{"camera": id, "fps": 10, "poses": [{"cam_to_world": 4x4, "time_s": t}]}``
     (the REST ``camera_path`` object)."""
-    import json
-
     p = Path(path)
     try:
         d = json.loads(p.read_text())
@@ -360,8 +361,6 @@ def load_path_json(bundle, path: str | Path) -> tuple[list[View], float]:
 def to_lights(specs: Sequence[LightSpec], graph, what: str = "lights") -> list:
     """:class:`core.pbr.lights.PointLight` / ``SpotLight`` of the specs; ConfigError naming an
     ``attach_to`` that is not an object of ``graph``."""
-    from core.pbr.lights import PointLight, SpotLight
-
     names = {n.name for n in graph.nodes}
     out = []
     for i, lt in enumerate(specs):
@@ -395,8 +394,6 @@ def scene_sky(run) -> tuple[np.ndarray, str]:
     """The reconstruction's own sky: ``(envmap [512, 1024, 3], what it is)``. The map the run's
     latest pbr or joint stage recovered; without one, a uniform grey sky
     (:data:`FALLBACK_SKY_RADIANCE`), said so in the note. Never the bundle's ground truth."""
-    from core.io.envmap_file import read_envmap
-
     path, stage = run.latest_envmap()
     if path is not None:
         return np.asarray(read_envmap(path), np.float32), f"recovered by the reconstruction's {stage} stage"
@@ -415,8 +412,14 @@ def street_lights_for(bundle, graph=None, *, placement: str = "detect", position
     ``[x, y]`` / ``[x, y, z]``) wins over ``placement``; ``detect`` looks for poles in the
     bundle's LiDAR, else in the reconstruction's opaque background Gaussians (``graph``), and
     falls back to ``spacing`` rows along the capture's camera path when it finds none."""
-    from core.render.streetlights import (Ground, StreetLightSettings, detect_poles, lamp_lights, lamps_along_path,
-                                          lamps_at)
+    from core.render.streetlights import (
+        Ground,
+        StreetLightSettings,
+        detect_poles,
+        lamp_lights,
+        lamps_along_path,
+        lamps_at,
+    )
 
     s = settings or StreetLightSettings()
     if placement not in STREET_LIGHT_PLACEMENTS:
@@ -469,8 +472,6 @@ def night_scenario(run, *, sky_scale: float = 0.02, headlights: bool = True, hea
     lamps = ()
     if street_lights:
         if bundle is None:
-            from core.bundle import open_bundle
-
             bundle = open_bundle(run.scene_path(), validate=False)
         st = StreetLightSettings() if street_light_spacing_m is None else StreetLightSettings(
             spacing_m=street_light_spacing_m)
@@ -492,8 +493,6 @@ def request_problems(manifest, request: dict, object_ids: Sequence[str] | None =
     removed; explicit pose time indices), ``lights[i].attach_to`` and ``vehicle_lights_off``
     (objects after the edits). ``object_ids``: the objects a reconstruction has (default: the
     bundle's tracked objects)."""
-    from core.io.hdri import hdri_names
-
     out: list[str] = []
     ids = list(object_ids) if object_ids is not None else [o.id for o in manifest.objects]
     n_times = len(manifest.times)
@@ -575,9 +574,6 @@ def render_scenario(graph, scenario: Scenario, out_dir: str | Path, *,
                     on_frame: Callable[[int, int], None] | None = None) -> ScenarioResult:
     """Apply the edits, place the lights, render the views with the PBR pass, denoise, write EXR /
     MP4 / PNG into ``out_dir`` (:func:`core.relight.render_clip`)."""
-    from core.pbr.envmap import EnvironmentMap
-    from core.pbr.render import ClipHook, PBRSettings
-    from core.pbr.visibility import TraceSettings
     from core.relight import apply_edits, render_clip
 
     if not isinstance(scenario, Scenario):
