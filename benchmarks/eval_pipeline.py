@@ -7,8 +7,8 @@ development scene of the quick profile); the test streets are run once at the en
 seed, map and rotation are used nowhere else in the project (not in the generative models'
 training data, not in the lighting prior's development streets).
 
-    python benchmarks/eval_pipeline.py --data /path/to/streets --profile quick
-    python benchmarks/eval_pipeline.py --data /path/to/streets --profile benchmark --roles test
+    python benchmarks/eval_pipeline.py --data /path/to/streets --profile benchmark   # the figures
+    python benchmarks/eval_pipeline.py --data /path/to/streets --profile quick --roles dev   # a cheaper look
 
 Missing streets are generated first (about 8 min each on 2 cores). Runs are kept under
 ``<data>/runs/<street>_<profile>_<row>`` and resumed, so an interrupted benchmark continues.
@@ -169,7 +169,7 @@ def mean_row(rows: list[dict]) -> dict:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", required=True, help="directory of the streets (generated when missing) and runs")
-    ap.add_argument("--profile", default="quick", help="reconstruction profile of the streets")
+    ap.add_argument("--profile", default="benchmark", help="reconstruction profile of the streets")
     ap.add_argument("--roles", default="dev,test", help="which streets: dev, test or both")
     ap.add_argument("--streets", default="", help=f"comma-separated subset of {sorted(STREETS)} (default: all of --roles), run in this order")
     ap.add_argument("--rows", default="full", help=f"comma-separated rows of {sorted(ROWS)}")

@@ -45,9 +45,10 @@ from core.errors import ConfigError, FormatError
 
 #: The paper's stages in chain order.
 STAGES = ("volume", "generative_refine", "volume2", "pbr", "joint")
-#: Profiles: ``tiny`` (tests, CI), ``quick`` (the default scene, the demo: whole pipeline in
-#: <= 15 min on 2 CPU cores), ``benchmark`` (the figures; a few hours), ``paper`` (the paper's
-#: iteration counts, rays and resolution, for a GPU host).
+#: Profiles: ``tiny`` (tests, CI), ``quick`` (the default: the knee of the run-time-against-error
+#: front, ``benchmarks/results/runtime_vs_error.json``), ``benchmark`` (the figures: the cheapest
+#: measured configuration within run-to-run spread of the best relight on that front), ``paper``
+#: (the paper's iteration counts, rays and resolution, for a GPU host).
 PROFILE_NAMES = ("tiny", "quick", "benchmark", "paper")
 RUN_FILE = "run.json"
 DONE_FILE = "done.json"
@@ -150,20 +151,26 @@ def _profile_table() -> dict[str, dict[str, Any]]:
                                   eval_pixels=512),
             "joint": JointSettings(iterations=20, pixels=256, rays_per_pixel=8, max_frames=4),
         },
+        # quick: the knee of the front (Kneedle, log CPU seconds against relight PSNR; measured
+        # as the benchmark profile's iterations x0.5: 170 CPU s, 18.3 dB on the default scene)
         "quick": {
+            "volume": VolumeSettings(iterations=1000, densify_from=100, densify_until=700, densify_every=50,
+                                     density=DensityConfig(max_gaussians=80_000)),
+            "generative_refine": RefineSettings(),
+            "volume2": VolumeSettings(iterations=400, densify_from=10**9, densify_until=0, densify_every=50,
+                                      init_from_graph=True, density=DensityConfig(max_gaussians=80_000)),
+            "pbr": PBRStageConfig(iterations=75),
+            "joint": JointSettings(iterations=150),
+        },
+        # benchmark: the front's plateau (2x its iterations, or 7000 + 3000 volume iterations with
+        # 200k Gaussians, scored within run-to-run spread of it; 335 CPU s, 18.9 dB on the default scene)
+        "benchmark": {
             "volume": VolumeSettings(density=DensityConfig(max_gaussians=80_000)),
             "generative_refine": RefineSettings(),
             "volume2": VolumeSettings(iterations=800, densify_from=10**9, densify_until=0, init_from_graph=True,
                                       density=DensityConfig(max_gaussians=80_000)),
             "pbr": PBRStageConfig(),
             "joint": JointSettings(),
-        },
-        "benchmark": {
-            "volume": VolumeSettings(iterations=7000, densify_until=4000, opacity_reset_every=3000),
-            "generative_refine": RefineSettings(),
-            "volume2": VolumeSettings(iterations=3000, densify_from=10**9, densify_until=0, init_from_graph=True),
-            "pbr": PBRStageConfig(iterations=400),
-            "joint": JointSettings(iterations=600),
         },
         # The paper's counts (supplement): 30k + 30k volume iterations, 5k PBR, 20k joint,
         # 512 rays and 2048 pixels per step. For a GPU host; hours per stage on these CPUs.
