@@ -31,10 +31,11 @@ with a cold visibility cache (no reuse across requests), so the pairs compare al
 configuration: the median of the project's car luminance over Mitsuba's inside both silhouettes
 and the share of car pixels below half of Mitsuba's (a car its own Gaussians shadow drops both).
 
-Measured (``benchmarks/results/insertion.json``; the default scene's 0.25x quick reconstruction,
-3 test frames, Mitsuba 128 spp, the project 16 rays + OIDN), IoU per configuration city 36 / 126
-/ 216 / 306 / sunrise 126: object t_min 0.05 m (the default) 0.763 / 0.771 / 0.689 / 0.825 /
-0.832, mean 0.776, min 0.689; 0.5 m (one t_min for all, as before) 0.685 / 0.776 / 0.605 / 0.360
+Measured (``benchmarks/results/insertion.json``; the default scene's reconstruction at the
+benchmark profile's 0.25x iterations (then named quick x0.25), 3 test frames, Mitsuba 128 spp,
+the project 16 rays + OIDN), IoU per configuration city 36 / 126 / 216 / 306 / sunrise 126:
+object t_min 0.05 m (the default) 0.763 / 0.771 / 0.689 / 0.825 / 0.832, mean 0.776, min 0.689;
+0.5 m (one t_min for all, as before) 0.685 / 0.776 / 0.605 / 0.360
 / 0.834, mean 0.652; 0 to 0.2 m within 0.003 of 0.05's; 0.3 m mean 0.754 (city 306: 0.731). The
 car's luminance ratios are the same at every object t_min (points on the car trace it from 0.5 m;
 before that exception, 0.2 m darkened the car by 10-27%).
