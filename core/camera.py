@@ -262,3 +262,13 @@ class Camera:
         k = self.K.clone()
         k[..., :2, :] *= factor
         return Camera(k, self.cam_to_world, int(w), int(h))
+
+
+def require_one_camera(camera: Any, name: str = "camera") -> "Camera":
+    """``camera`` if it is one (unbatched) :class:`Camera`; else ConfigError (not a Camera) or
+    ShapeError (a batch) naming ``name``."""
+    if not isinstance(camera, Camera):
+        raise ConfigError(f"{name}: expected a core.camera.Camera, got {type(camera).__name__}")
+    if camera.is_batched:
+        raise ShapeError(f"{name}: expected one camera, got a batch of {len(camera)} (index it)")
+    return camera

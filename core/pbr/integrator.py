@@ -44,8 +44,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from core.camera import Camera
-from core.errors import ConfigError, ShapeError
+from core.camera import Camera, require_one_camera
+from core.errors import ConfigError
 from core.pbr import _native
 from core.pbr.envmap import EnvironmentMap
 
@@ -251,10 +251,7 @@ def integrate(points, normals, wo, albedo, roughness, metallic, env: NativeEnv, 
     from core.pbr.visibility import TraceSettings, default_threads
 
     if camera is not None:
-        if not isinstance(camera, Camera):
-            raise ConfigError(f"camera: expected a core.camera.Camera, got {type(camera).__name__}")
-        if camera.is_batched:
-            raise ShapeError(f"camera: expected one camera, got a batch of {len(camera)}")
+        require_one_camera(camera)
     elif cache is not None:
         raise ConfigError("camera: required with cache (its focal length sizes the cache cells)")
     fx = camera.fx if camera is not None else 1.0

@@ -36,7 +36,7 @@ from typing import Any
 
 import torch
 
-from core.camera import Camera
+from core.camera import Camera, require_one_camera
 from core.errors import ConfigError, NumericalError, ShapeError
 from core.numerics import require_finite
 from core.rotations import quat_normalize, quat_to_rotmat  # noqa: F401 - re-exported
@@ -237,10 +237,7 @@ def rasterize(
     settings = settings if settings is not None else RasterSettings()
     if not isinstance(settings, RasterSettings):
         raise ConfigError(f"settings: expected RasterSettings, got {type(settings).__name__}")
-    if not isinstance(camera, Camera):
-        raise ConfigError(f"camera: expected a core.camera.Camera, got {type(camera).__name__}")
-    if camera.is_batched:
-        raise ShapeError(f"camera: expected one camera, got a batch of {len(camera)} (index it)")
+    require_one_camera(camera)
     width, height = camera.width, camera.height
     means = _check_tensor(means, "means", (None, 3), None, False)
     dtype = means.dtype

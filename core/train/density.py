@@ -9,8 +9,8 @@ from dataclasses import dataclass
 
 import torch
 
-from core.camera import Camera
-from core.errors import ConfigError, ShapeError
+from core.camera import Camera, require_one_camera
+from core.errors import ShapeError
 from core.gaussians import Gaussians, _logit
 from core.rotations import quat_to_rotmat
 from core.train.optim import GaussianAdam
@@ -62,10 +62,7 @@ class DensityController:
         (half the image = 1) like 3DGS's mean2D gradient. Raises :class:`ConfigError` /
         :class:`ShapeError` naming ``camera`` (not one Camera) or ``means_grad`` (not [N, 3] like
         ``means``)."""
-        if not isinstance(camera, Camera):
-            raise ConfigError(f"camera: expected a core.camera.Camera, got {type(camera).__name__}")
-        if camera.is_batched:
-            raise ShapeError(f"camera: expected one camera, got a batch of {len(camera)}")
+        require_one_camera(camera)
         if means_grad is None or len(means) == 0:
             return
         if means_grad.shape != means.shape:
