@@ -32,7 +32,9 @@ from tqdm import tqdm
 
 from core.errors import ConfigError, FormatError, NumericalError
 from core.io.envmap_file import read_envmap, write_envmap
+from core.lighting.sky_evidence import SkyEvidence
 from core.metrics import ssim
+from core.numerics import LOG_RADIANCE_FLOOR
 from core.pbr.envmap import EnvironmentMap, resample
 from core.pbr.render import PBRSettings, render_pbr
 from core.pbr.visibility import GaussianTracer, TraceSettings
@@ -182,6 +184,14 @@ def run_stage(ctx) -> dict:
             with torch.no_grad():
                 env.param.copy_(state["env"])
             env.rebuild_sampler()
+        env_leaf = env.param  # the optimised log radiance; the observed sky is held over it
+        ev_file = env_path.parent / "sky_evidence.npz"
+        ev_full = SkyEvidence.load(ev_file) if ev_file.is_file() else None
+        ev_low = ev_full.at(h) if ev_full is not None else None
+
+        def compose_env() -> None:
+            if ev_low is not None:
+                env.param = ev_low.hold(env_leaf)
         m = b.manifest
         ps = PBRSettings(backend="torch", rays_per_pixel=cfg.rays_per_pixel, exposure=m.ldr_exposure,
                          gamma=m.ldr_gamma, threads=cfg.threads, seed=cfg.seed)
@@ -189,7 +199,7 @@ def run_stage(ctx) -> dict:
         lr = _scaled_lr(cfg.lr_scale)
         opts = [GaussianAdam(g, lr) for g in model.containers()]
         sky_opt = torch.optim.Adam(model.sky.parameters(), lr=0.01)
-        env_opt = torch.optim.Adam([env.param], lr=cfg.env_lr)
+        env_opt = torch.optim.Adam([env_leaf], lr=cfg.env_lr)
         history: list[dict] = []
         start = 1
         stopped_at, fired = None, []
@@ -237,6 +247,7 @@ def run_stage(ctx) -> dict:
             photo = prior = l_vol * 0
             if cand.numel():
                 idx = cand[torch.randperm(cand.numel(), generator=gen)[:cfg.pixels]]
+                compose_env()
                 env.rebuild_sampler()
                 res = render_pbr(out, v.camera, env, settings=ps, tracers=tracers[v.frame_id], pixels=idx, generator=gen)
                 photo = (res.ldr.to(torch.float32) - v.image.reshape(-1, 3)[idx]).abs().mean()
@@ -262,7 +273,7 @@ def run_stage(ctx) -> dict:
             if ctx.on_progress is not None:
                 ctx.on_progress(it, cfg.iterations, rec)
             if it % every == 0 and it < cfg.iterations:
-                _save_state(ck, it, model, opts, sky_opt, env, env_opt, rng, gen, history)
+                _save_state(ck, it, model, opts, sky_opt, env_leaf, env_opt, rng, gen, history)
             k = cfg.early_stop_every
             if k and it % k == 0 and it < cfg.iterations:
                 wins = [float(np.mean([h["loss"] for h in history[j:j + k]])) for j in range(0, len(history) - k + 1, k)]
@@ -274,9 +285,14 @@ def run_stage(ctx) -> dict:
                                   f"{cfg.iterations} steps"})
                     break
         bar.close()
-        env.rebuild_sampler()
         with torch.no_grad():
-            fitted = resample(env.radiance_map().detach().double(), 512, 1024).numpy().astype(np.float32)
+            compose_env()
+            env.param = env.param.detach()
+            fitted_t = resample(env.radiance_map().double(), 512, 1024)
+            if ev_full is not None:  # the observed sky at its own resolution, not the stage's 128 rows
+                fitted_t = torch.exp(ev_full.at(512).hold(torch.log(fitted_t.clamp_min(LOG_RADIANCE_FLOOR))))
+            fitted = fitted_t.numpy().astype(np.float32)
+        env.rebuild_sampler()
         if not np.isfinite(fitted).all():
             raise NumericalError("joint stage: the fitted environment map is not finite")
         out_dir = ctx.out_dir
@@ -292,14 +308,14 @@ def run_stage(ctx) -> dict:
         torch.set_num_threads(old_threads)
 
 
-def _save_state(ck: Path, it: int, model, opts, sky_opt, env, env_opt, rng, gen, history) -> None:
+def _save_state(ck: Path, it: int, model, opts, sky_opt, env_leaf, env_opt, rng, gen, history) -> None:
     """Scene graph of this iteration first, then the state file naming it (atomic), then older
     graphs removed: a crash at any point leaves a state that names a complete graph."""
     ck.mkdir(parents=True, exist_ok=True)
     gf = f"scene_graph.{it}.pt"
     model.graph.save(ck / gf)
     payload = {"iteration": it, "graph_file": gf, "sky": model.sky.state_dict(), "sky_opt": sky_opt.state_dict(),
-               "env": env.param.detach().clone(), "env_opt": env_opt.state_dict(),
+               "env": env_leaf.detach().clone(), "env_opt": env_opt.state_dict(),
                "opt": [{"m": o.m, "v": o.v, "step": o.step_count} for o in opts],
                "rng": rng.bit_generator.state, "gen": gen.get_state(), "history": history}
     tmp = ck / "state.pt.tmp"

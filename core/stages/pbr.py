@@ -15,9 +15,14 @@ shading), computed on the reconstruction's own G-buffers (depth, normals, albedo
 the scene graph), never on ground truth. The paper uses DiffusionLight for ``E_g``; this project's
 learned lighting prior does not exist yet.
 
+The sky the training frames saw is held fixed in ``E`` and ``E_g``
+(:mod:`core.lighting.sky_evidence`: the reconstruction's sky dome where the frames' sky pixels
+point, unclipped): the fit moves only what the frames did not see (not in the paper).
+
 Outputs (``out_dir``): ``envmap.exr`` (the fitted ``E``, float32, 2:1 equirect in the project's
 convention), ``envmap_prior.exr`` (``E_g``), ``preview.png`` (both tone-mapped), ``summary.json``
-(losses, photometric PSNR on the sampled pixels before and after). The stage never reads the
+(losses, photometric PSNR on the sampled pixels before and after, the sky evidence's coverage),
+``sky_evidence.npz`` (what is held, for the joint stage). The stage never reads the
 bundle's ground truth; ``brdf evaluate`` (:mod:`core.synth.evaluate`) measures the sun direction error.
 """
 
@@ -27,7 +32,7 @@ import json
 import math
 import shutil
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Callable
 
@@ -41,6 +46,8 @@ from core.io.atomic import atomic_output
 from core.io.envmap_file import write_envmap
 from core.io.images import write_png
 from core.lighting.prior import LightingSettings, estimate_lighting, numpy_visibility
+from core.lighting.sky_evidence import SkyEvidence, SkyEvidenceSettings, observed_sky
+from core.numerics import LOG_RADIANCE_FLOOR
 from core.pbr.envmap import EnvironmentMap, resample
 from core.pbr.render import PBRSettings, render_pbr
 from core.pbr.visibility import GaussianTracer, TraceSettings
@@ -116,8 +123,15 @@ class PBRStageConfig:
     """Windows without improvement before the stage stops."""
     early_stop_min_delta: float = 0.01
     """Relative improvement of the window's mean L1 that counts (0.01 = 1%)."""
+    sky_evidence: SkyEvidenceSettings = field(default_factory=SkyEvidenceSettings)
+    """The sky the frames saw, held fixed in the map (:mod:`core.lighting.sky_evidence`): the
+    reconstruction's sky dome where the training frames' sky pixels point and the dome is not
+    clipped; the fit (and the joint stage after it) moves the rest. Needs the dome (the chain's
+    runs have it); its coverage is in the summary."""
 
     def __post_init__(self) -> None:
+        if not isinstance(self.sky_evidence, SkyEvidenceSettings):
+            raise ConfigError(f"sky_evidence: expected SkyEvidenceSettings, got {type(self.sky_evidence).__name__}")
         if not isinstance(self.skip_sun_search, bool):
             raise ConfigError(f"skip_sun_search: expected true or false, got {self.skip_sun_search!r}")
         bad = [n for n, ok in (("iterations", self.iterations >= 0), ("pixels", self.pixels >= 1),
@@ -247,7 +261,7 @@ def _ldr_map(rgb: np.ndarray) -> np.ndarray:
 
 def fit_lighting(graph, bundle, out_dir: str | Path, cfg: PBRStageConfig | None = None, *,
                  on_progress: Callable[[int, int, dict], None] | None = None,
-                 resume_dir: str | Path | None = None, checkpoint_every: int = 0) -> dict:
+                 resume_dir: str | Path | None = None, checkpoint_every: int = 0, sky=None) -> dict:
     """Run the stage on a reconstructed scene graph and its bundle; write the outputs (module
     docstring) to ``out_dir`` and return the summary.
 
@@ -261,6 +275,8 @@ def fit_lighting(graph, bundle, out_dir: str | Path, cfg: PBRStageConfig | None 
         resume_dir: where the optimisation state (map, Adam moments, random state, history) is
             saved every ``checkpoint_every`` steps; a run started with a state there continues
             from it (a killed stage resumes).
+        sky: the reconstruction's :class:`core.train.sky.SkyDome`: the sky the frames saw is held
+            fixed in the map (``cfg.sky_evidence``); None = fit the whole map.
     """
     cfg = cfg or PBRStageConfig()
     if not isinstance(cfg, PBRStageConfig):
@@ -284,6 +300,23 @@ def fit_lighting(graph, bundle, out_dir: str | Path, cfg: PBRStageConfig | None 
     t_prior = time.perf_counter() - t_prior
     prior_full = np.asarray(est.envmap, np.float32)
     h = cfg.env_height
+    m = bundle.manifest
+    hold, sky_stats_obs = None, {"enabled": False, "why": "no sky dome"} if sky is None else None
+    if sky is not None and cfg.sky_evidence.enabled:
+        masks = [(f.sky if f.sky is not None else f.gbuf["opacity"].reshape(-1) < 0.5).reshape(
+            f.camera.height, f.camera.width).numpy() for f in frames]
+        rad_obs, w_obs, floor_obs, sky_stats_obs = observed_sky(sky, [f.camera for f in frames], masks, height=h,
+                                                     exposure=m.ldr_exposure, gamma=m.ldr_gamma,
+                                                     settings=cfg.sky_evidence)
+        ev = SkyEvidence.from_observed(rad_obs, w_obs, floor_obs)
+        if not ev.empty:
+            hold = ev
+            ev.save(out / "sky_evidence.npz")
+            # the prior E_g holds the observed sky too (what the joint stage's log prior pulls to)
+            log_p = torch.log(resample(torch.from_numpy(prior_full).double(), h, 2 * h).clamp_min(LOG_RADIANCE_FLOOR))
+            prior_full = resample(torch.exp(ev.hold(log_p)), 512, 1024).numpy().astype(np.float32)
+    elif sky is not None:
+        sky_stats_obs = {"enabled": False, "why": "sky_evidence.enabled is false"}
     prior_t = resample(torch.from_numpy(prior_full).double(), h, 2 * h)
     env = EnvironmentMap(prior_t, log_space=True, requires_grad=True)
     log_prior = env.param.detach().clone()
@@ -292,13 +325,15 @@ def fit_lighting(graph, bundle, out_dir: str | Path, cfg: PBRStageConfig | None 
     coarse = torch.zeros(hc, 2 * hc, 3, dtype=log_prior.dtype, requires_grad=True) if hc else None
 
     def compose() -> None:
-        """Set the map's log radiance to ``fine + up(coarse)`` (a graph node when coarse is on)."""
-        if coarse is None:
+        """Set the map's log radiance to ``fine + up(coarse)``, the observed sky held (a graph
+        node when coarse or the sky evidence is on)."""
+        if coarse is None and hold is None:
             return
-        up = torch.nn.functional.interpolate(coarse.permute(2, 0, 1)[None], size=(h, 2 * h), mode="bilinear",
-                                             align_corners=False)[0].permute(1, 2, 0)
-        env.param = fine + up
-    m = bundle.manifest
+        p = fine
+        if coarse is not None:
+            p = p + torch.nn.functional.interpolate(coarse.permute(2, 0, 1)[None], size=(h, 2 * h), mode="bilinear",
+                                                    align_corners=False)[0].permute(1, 2, 0)
+        env.param = hold.hold(p) if hold is not None else p
     ps = PBRSettings(backend="torch", rays_per_pixel=cfg.rays_per_pixel, exposure=m.ldr_exposure,
                      gamma=m.ldr_gamma, threads=cfg.threads, seed=cfg.seed)
     gen = torch.Generator().manual_seed(cfg.seed)
@@ -400,6 +435,7 @@ def fit_lighting(graph, bundle, out_dir: str | Path, cfg: PBRStageConfig | None 
                "capture_sky": {"sunless": sunless, **sky_stats}, "skips_fired": fired,
                "photometric_psnr_prior": psnr_before, "photometric_psnr_fitted": psnr_after,
                "sun_source": est.sun_source, "sun_dir_prior": [float(x) for x in est.sun_dir],
+               "sky_evidence": sky_stats_obs,
                "history": history, "resumed_from_iteration": start,
                "seconds": {"gbuffers": t_frames, "prior": t_prior, "total": time.perf_counter() - t0}}
     sep = np.full((4, 1024, 3), 255, np.uint8)
@@ -413,7 +449,7 @@ def run_stage(ctx) -> dict:
     """The chain's entry point: the latest scene graph before this stage, frozen; the lighting
     fitted into ``<run>/pbr/``."""
     cfg: PBRStageConfig = ctx.settings
-    graph, _sky, graph_stage = ctx.run.load_scene(before=ctx.name)
+    graph, sky, graph_stage = ctx.run.load_scene(before=ctx.name)
     total = cfg.iterations
     bar = None
     if ctx.progress:
@@ -428,7 +464,7 @@ def run_stage(ctx) -> dict:
 
     try:
         summary = fit_lighting(graph, ctx.bundle, ctx.out_dir, cfg, on_progress=report, resume_dir=ctx.resume_dir,
-                               checkpoint_every=max(1, total // 10))
+                               checkpoint_every=max(1, total // 10), sky=sky)
         shutil.rmtree(ctx.resume_dir, ignore_errors=True)  # done: the resume state is not needed
     finally:
         if bar is not None:

@@ -7,24 +7,33 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+import torch
 
 from core.bundle import open_bundle
 from core.errors import ConfigError
 from core.io.envmap_file import read_envmap
+from core.lighting.sky_evidence import SkyEvidence
+from core.pbr.envmap import resample
 from core.scene_graph import SceneGraph
 from core.stages.chain import profile_settings
 from core.stages.pbr import PBRStageConfig, fit_lighting
 from core.stages.volume import run_volume
+from core.train.sky import SkyDome
 
 pytestmark = pytest.mark.mitsuba
 
 
 @pytest.fixture(scope="module")
-def reconstruction(tiny_scene, tmp_path_factory):
+def volume_dir(tiny_scene, tmp_path_factory):
     out = tmp_path_factory.mktemp("vol")
     cfg = replace(profile_settings("tiny", "volume"), iterations=40, densify_until=30)
     run_volume(open_bundle(tiny_scene), cfg, out, progress=False)
-    return SceneGraph.load(out / "checkpoint" / "scene_graph.pt")
+    return out
+
+
+@pytest.fixture(scope="module")
+def reconstruction(volume_dir):
+    return SceneGraph.load(volume_dir / "checkpoint" / "scene_graph.pt")
 
 
 def test_fit_improves_the_photometric_match_and_writes_outputs(tiny_scene, reconstruction, tmp_path):
@@ -64,3 +73,26 @@ def test_bad_settings_name_the_field(field, value):
 def test_wrong_settings_type(tiny_scene, reconstruction, tmp_path):
     with pytest.raises(ConfigError, match="cfg"):
         fit_lighting(reconstruction, open_bundle(tiny_scene), tmp_path, {"iterations": 3})
+
+
+def test_the_observed_sky_is_held_in_the_fitted_map(tiny_scene, reconstruction, volume_dir, tmp_path):
+    sky = SkyDome.from_state(torch.load(volume_dir / "checkpoint" / "sky.pt", weights_only=True)["sky"])
+    cfg = replace(profile_settings("tiny", "pbr"), iterations=10, lr=0.2, coarse_lr=0.2, env_height=64)
+    s = fit_lighting(reconstruction, open_bundle(tiny_scene), tmp_path, cfg, sky=sky)
+    assert s["sky_evidence"]["enabled"] and s["sky_evidence"]["grid_texels_seen"] > 0, s["sky_evidence"]
+    ev = SkyEvidence.load(tmp_path / "sky_evidence.npz")
+    held = (ev.weight > 0.999).numpy()
+    assert held.any()
+    fitted = resample(torch.from_numpy(read_envmap(tmp_path / "envmap.exr")).double(), 64, 128).numpy()
+    prior = resample(torch.from_numpy(read_envmap(tmp_path / "envmap_prior.exr")).double(), 64, 128).numpy()
+    obs = np.exp(ev.log_radiance.numpy())
+    # held texels keep the observed radiance through the fit (up to the 512 <-> 64 resampling at
+    # the held region's edge); the fit moved the map elsewhere
+    inner = held & np.roll(held, 1, 0) & np.roll(held, -1, 0) & np.roll(held, 1, 1) & np.roll(held, -1, 1)
+    np.testing.assert_allclose(fitted[inner], obs[inner], rtol=0.05)
+    np.testing.assert_allclose(prior[inner], obs[inner], rtol=0.05)
+    assert not np.allclose(fitted[~held], prior[~held], rtol=0.05)
+    # without the dome nothing is held
+    s2 = fit_lighting(reconstruction, open_bundle(tiny_scene), tmp_path / "nodome", cfg)
+    assert s2["sky_evidence"] == {"enabled": False, "why": "no sky dome"}
+    assert not (tmp_path / "nodome" / "sky_evidence.npz").exists()
