@@ -46,9 +46,11 @@ class SkyEvidenceSettings:
     enabled: bool = True
     """Fix the observed sky (False: the map is fitted everywhere, as before)."""
     grid_height: int = 128
-    """Rows of the coverage grid (columns = 2 x rows): a texel counts as seen when a sky pixel's
-    ray falls in it. Coarser than the map (512 rows): one 240-pixel frame covers ~0.3 deg per
-    pixel, a 128-row grid cell is 1.4 deg, so the covered region has no pinholes."""
+    """Rows of the coverage grid (columns = 2 x rows) at most: a texel counts as seen when a sky
+    pixel's ray falls in it. Coarser than the map (512 rows), and coarser still for coarse
+    frames: at most ``pi f / 3`` rows for the smallest focal length ``f`` (pixels), so a texel
+    spans about 3 x 3 pixels and the covered region has no pinholes (a 240-pixel frame with a
+    70 deg field of view: 128 rows, 1.4 deg a texel)."""
     min_pixels: int = 2
     """Sky pixels a grid texel needs to count as seen."""
     clip: float = 0.98
@@ -111,10 +113,11 @@ def observed_sky(dome, cameras, sky_masks, *, height: int, exposure: float, gamm
     masks = list(sky_masks)
     if len(cams) != len(masks):
         raise ShapeError(f"sky_masks: expected one per camera ({len(cams)}), got {len(masks)}")
-    gh = s.grid_height
+    cams = [Camera.of(c) for c in cams]
+    f_min = min((min(float(c.fx), float(c.fy)) for c in cams), default=1e9)
+    gh = int(max(4, min(s.grid_height, math.floor(math.pi * f_min / 3.0))))
     count = np.zeros((gh, 2 * gh), np.int64)
     for i, (cam, m) in enumerate(zip(cams, masks)):
-        cam = Camera.of(cam)
         m = np.asarray(m, bool)
         if m.shape != (cam.height, cam.width):
             raise ShapeError(f"sky_masks[{i}]: expected [{cam.height}, {cam.width}], got {list(m.shape)}")
@@ -142,7 +145,7 @@ def observed_sky(dome, cameras, sky_masks, *, height: int, exposure: float, gamm
     # seen but clipped: the radiance is at least the clip level (a floor, not a value)
     floor_mask = (covered & ~seen)[r, c] if s.enabled else np.zeros_like(weight, bool)
     floor = np.where(floor_mask, (s.clip ** gamma) / exposure, 0.0)
-    stats = {"enabled": s.enabled, "grid_texels_seen": int(seen.sum()),
+    stats = {"enabled": s.enabled, "grid_height": gh, "grid_texels_seen": int(seen.sum()),
              "grid_texels_clipped": int((covered & ~seen).sum()),
              "solid_angle_fixed_sr": float((weight * np.sin((np.arange(height)[:, None] + 0.5) / height * np.pi)).sum()
                                             * (np.pi / height) * (2 * np.pi / h2))}

@@ -46,6 +46,20 @@ def test_every_stage_runs_and_writes_its_outputs(tiny_run):
         assert all(np.isfinite(h["loss"]) for h in run.summary(name)["history"]), name
 
 
+def test_the_joint_stage_keeps_the_observed_sky_of_the_pbr_stage(tiny_run):
+    from core.io.envmap_file import read_envmap
+    from core.lighting.sky_evidence import SkyEvidence
+
+    stats = RunDir(tiny_run).summary("pbr")["sky_evidence"]
+    assert stats["enabled"] and stats["grid_texels_seen"] > 0, stats
+    held = (SkyEvidence.load(tiny_run / "pbr" / "sky_evidence.npz").at(512).weight > 0.999).numpy()
+    assert held.sum() > 100, stats
+    pbr, joint = read_envmap(tiny_run / "pbr" / "envmap.exr"), read_envmap(tiny_run / "joint" / "envmap.exr")
+    # the joint stage fits a 128-row map; where the sky was seen it keeps the pbr stage's map
+    np.testing.assert_allclose(joint[held], pbr[held], rtol=0.02)
+    assert not np.allclose(joint[~held], pbr[~held], rtol=0.02)  # and moves the rest
+
+
 def test_profiles_cover_every_stage_and_refuse_unknown_names():
     for p in PROFILE_NAMES:
         for s in STAGES:

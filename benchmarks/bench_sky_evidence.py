@@ -1,0 +1,93 @@
+"""The observed sky held in the recovered map (``core.lighting.sky_evidence``): with against without.
+
+For each finished run (all five stages, sky evidence on: the default), a copy of its volume,
+generative_refine and volume2 stages gets the pbr and joint stages again with
+``pbr.sky_evidence.enabled=false``; both are evaluated (``brdf evaluate``, the paper's metrics
+against the bundle's Mitsuba ground truth). The geometry and materials before pbr are the same
+files in both, so the difference is the held sky alone (plus the joint stage's small changes to
+the Gaussians that follow from the map).
+
+    python benchmarks/eval_pipeline.py --data D --profile quick --roles dev,test --out /tmp/q.json
+    python benchmarks/bench_sky_evidence.py D/runs/dev1_quick_full ... --roles dev,... \\
+        --out benchmarks/results/sky_evidence.json
+
+Prints the machine, each run's figures with and without, and the means per role.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+KEYS = ("rerender_psnr", "relight_psnr", "relight_ssim", "relight_flip", "sun_error_deg", "nvs_psnr",
+        "albedo_si_psnr", "normal_mae_deg")
+
+
+def brdf(*args: str) -> None:
+    subprocess.run([sys.executable, "-m", "core", *args], check=True, cwd=REPO)
+
+
+def evaluate(run: Path, out: Path) -> dict:
+    if not (out / "evaluation.json").is_file():
+        brdf("evaluate", str(run), "--out", str(out))
+    return json.loads((out / "evaluation.json").read_text())["summary"]
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("runs", nargs="+", help="finished run directories (sky evidence on)")
+    ap.add_argument("--roles", required=True, help="comma-separated role per run (dev / test)")
+    ap.add_argument("--out", default=str(REPO / "benchmarks" / "results" / "sky_evidence.json"))
+    a = ap.parse_args()
+    roles = a.roles.split(",")
+    if len(roles) != len(a.runs):
+        ap.error(f"--roles: one per run ({len(a.runs)}), got {len(roles)}")
+    t0 = time.perf_counter()
+    rows = {}
+    for run, role in zip(a.runs, roles):
+        run = Path(run).resolve()
+        meta = json.loads((run / "run.json").read_text())
+        off = run.parent / f"{run.name}_nosky"
+        if not (off / "joint" / "done.json").is_file():
+            off.mkdir(parents=True, exist_ok=True)
+            for name in ("run.json", "priors", "volume", "generative_refine", "volume2"):
+                src, dst = run / name, off / name
+                if src.is_dir() and not dst.exists():
+                    shutil.copytree(src, dst)
+                elif src.is_file():
+                    shutil.copy2(src, dst)
+            brdf("reconstruct", "--scene", meta["scene"], "--profile", meta["profile"], "--stages", "pbr,joint",
+                 "--resume", "--out", str(off), "--set", "pbr.sky_evidence.enabled=false", "--quiet")
+        on = evaluate(run, run.parent / f"{run.name}_eval")
+        no = evaluate(off, off.parent / f"{off.name}_eval")
+        rows[run.name] = {"role": role, "profile": meta["profile"], "with": {k: on.get(k) for k in KEYS},
+                          "without": {k: no.get(k) for k in KEYS}}
+        print(json.dumps({run.name: rows[run.name]}), flush=True)
+    means = {}
+    for role in sorted(set(roles)):
+        sel = [r for r in rows.values() if r["role"] == role]
+        means[role] = {v: {k: round(float(np.mean([r[v][k] for r in sel if r[v][k] is not None])), 4) for k in KEYS}
+                       for v in ("with", "without")}
+        means[role]["streets"] = len(sel)
+    res = {"machine": {"cpu": platform.processor() or platform.machine(), "cores": os.cpu_count(),
+                       "python": platform.python_version()},
+           "what": "pbr + joint with the observed sky held (with, the default) and without, from the same volume2",
+           "runs": rows, "means": means, "seconds": round(time.perf_counter() - t0, 1)}
+    Path(a.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(a.out).write_text(json.dumps(res, indent=1))
+    print(json.dumps(means, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
