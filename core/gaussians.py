@@ -269,6 +269,16 @@ class Gaussians:
     def detach(self) -> "Gaussians":
         return Gaussians._trusted(**{k: v.detach() for k, v in self.tensors().items()})
 
+    #: The fields that place and shape a Gaussian (what alpha blending weights depend on).
+    GEOMETRY_FIELDS = ("means", "quats", "log_scales", "opacity_logits")
+
+    def geometry_detached(self) -> "Gaussians":
+        """The same Gaussians with the geometry (:attr:`GEOMETRY_FIELDS`) detached and every
+        attribute (colour, normal, materials) still in the graph: a loss on its render moves the
+        attributes only."""
+        return Gaussians._trusted(**{k: (v.detach() if k in self.GEOMETRY_FIELDS else v)
+                                     for k, v in self.tensors().items()})
+
     def clone(self) -> "Gaussians":
         return Gaussians._trusted(**{k: v.clone() for k, v in self.tensors().items()})
 

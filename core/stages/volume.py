@@ -113,6 +113,20 @@ class VolumeSettings:
     of novel views); the count is in the summary."""
     prior_min_opacity: float = 0.5
     """Prior terms count only where the render covers the pixel at least this much."""
+    priors_move_geometry: bool = False
+    """The normal and material prior terms (L_N, L_A, L_R, L_M) move the geometry too (the
+    blending weights of the G-buffers they compare), as well as the attributes they supervise:
+    True, as Eq. 4 reads. False (the default, a departure): they are computed on a second render
+    of the same Gaussians with the geometry detached
+    (:meth:`core.gaussians.Gaussians.geometry_detached`), so only the normals and materials
+    follow them, and the geometry answers to the frames, the LiDAR, the depth prior and the
+    disk-normal alignment. An inverse model's albedo or normals that disagree with the frames
+    pulled Gaussians off the surfaces the frames show: on development street dev1 (quick) the
+    volume stage's held-out PSNR was 24.33 dB against the colour-only stage's 25.08. Measured at
+    the quick profile, development scenes, True -> False: dev1 NVS 24.68 -> 25.93 dB, relit
+    19.07 / 0.656 -> 19.85 / 0.676, re-render 18.13 -> 19.24, albedo 20.9 -> 21.1 dB, normals
+    6.4 -> 6.2 deg; the default scene NVS 25.22 -> 25.44, relit 18.56 -> 18.83 dB. Costs a second
+    rasterization per step."""
     init_from_graph: bool = False
     """Start from the previous stage's scene graph and sky (the second volume stage) instead of
     the LiDAR initialisation."""
@@ -463,6 +477,10 @@ def run_volume(bundle: SceneBundle, cfg: VolumeSettings, out_dir: str | Path | N
             if use_priors and v.frame_id in pri:
                 # update, not replace: a non-finite alignment term must still be named below
                 terms.update(prior_losses(out, pri[v.frame_id], cfg.prior_min_opacity))
+                if not cfg.priors_move_geometry:
+                    out_attr = rasterize_gaussians(world.geometry_detached(), v.camera, settings=settings)
+                    attr = prior_losses(out_attr, pri[v.frame_id], cfg.prior_min_opacity)
+                    terms.update({k: attr[k] for k in ("normal", "albedo", "roughness", "metallic")})
                 for k, w in weights.items():
                     if w > 0:
                         loss = loss + w * terms[k]

@@ -156,3 +156,23 @@ def test_render_through_container_gives_parameter_gradients():
     for name, gr in zip(g.tensors(), grads):
         assert torch.isfinite(gr).all(), name
         assert float(gr.abs().sum()) > 0, name
+
+
+def test_geometry_detached_renders_the_same_and_moves_only_the_attributes():
+    from core.raster import rasterize_gaussians
+
+    g = _make(30, 4).requires_grad_()
+    cam = Camera.from_intrinsics(*camera(24, 18))
+    full, attr = rasterize_gaussians(g, cam), rasterize_gaussians(g.geometry_detached(), cam)
+    for k, v in full.as_dict().items():
+        torch.testing.assert_close(attr.as_dict()[k], v, msg=k)  # same values
+    loss = attr.albedo.sum() + attr.normal.sum() + attr.roughness.sum() + attr.metallic.sum()
+    grads = dict(zip(g.tensors(), torch.autograd.grad(loss, g.parameters(), allow_unused=True)))
+    for k in Gaussians.GEOMETRY_FIELDS:
+        assert grads[k] is None or float(grads[k].abs().sum()) == 0.0, k
+    for k in ("albedo_logits", "normals", "roughness_logits", "metallic_logits"):
+        assert grads[k] is not None and float(grads[k].abs().sum()) > 0, k
+    # the same loss on the attached render moves the geometry too
+    loss_full = full.albedo.sum() + full.normal.sum()
+    g_means = torch.autograd.grad(loss_full, g.means)[0]
+    assert float(g_means.abs().sum()) > 0
