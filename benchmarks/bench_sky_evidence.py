@@ -1,8 +1,8 @@
 """The observed sky held in the recovered map (``core.lighting.sky_evidence``): with against without.
 
-For each finished run (all five stages, sky evidence on: the default), a copy of its volume,
-generative_refine and volume2 stages gets the pbr and joint stages again with
-``pbr.sky_evidence.enabled=false``; both are evaluated (``brdf evaluate``, the paper's metrics
+For each run (its volume, generative_refine and volume2 stages finished), two copies of those
+stages get the pbr and joint stages again with this code, ``pbr.sky_evidence.enabled`` true
+(the default) and false; both are evaluated (``brdf evaluate``, the paper's metrics
 against the bundle's Mitsuba ground truth). The geometry and materials before pbr are the same
 files in both, so the difference is the held sky alone (plus the joint stage's small changes to
 the Gaussians that follow from the map).
@@ -45,7 +45,7 @@ def evaluate(run: Path, out: Path) -> dict:
 
 def main() -> int:
     ap = argparse.ArgumentParser()
-    ap.add_argument("runs", nargs="+", help="finished run directories (sky evidence on)")
+    ap.add_argument("runs", nargs="+", help="run directories with volume2 done")
     ap.add_argument("--roles", required=True, help="comma-separated role per run (dev / test)")
     ap.add_argument("--out", default=str(REPO / "benchmarks" / "results" / "sky_evidence.json"))
     a = ap.parse_args()
@@ -57,21 +57,22 @@ def main() -> int:
     for run, role in zip(a.runs, roles):
         run = Path(run).resolve()
         meta = json.loads((run / "run.json").read_text())
-        off = run.parent / f"{run.name}_nosky"
-        if not (off / "joint" / "done.json").is_file():
-            off.mkdir(parents=True, exist_ok=True)
-            for name in ("run.json", "priors", "volume", "generative_refine", "volume2"):
-                src, dst = run / name, off / name
-                if src.is_dir() and not dst.exists():
-                    shutil.copytree(src, dst)
-                elif src.is_file():
-                    shutil.copy2(src, dst)
-            brdf("reconstruct", "--scene", meta["scene"], "--profile", meta["profile"], "--stages", "pbr,joint",
-                 "--resume", "--out", str(off), "--set", "pbr.sky_evidence.enabled=false", "--quiet")
-        on = evaluate(run, run.parent / f"{run.name}_eval")
-        no = evaluate(off, off.parent / f"{off.name}_eval")
-        rows[run.name] = {"role": role, "profile": meta["profile"], "with": {k: on.get(k) for k in KEYS},
-                          "without": {k: no.get(k) for k in KEYS}}
+        res = {}
+        for variant, enabled in (("with", "true"), ("without", "false")):
+            d = run.parent / f"{run.name}_sky_{'on' if enabled == 'true' else 'off'}"
+            if not (d / "joint" / "done.json").is_file():
+                d.mkdir(parents=True, exist_ok=True)
+                for name in ("run.json", "priors", "volume", "generative_refine", "volume2"):
+                    src, dst = run / name, d / name
+                    if src.is_dir() and not dst.exists():
+                        shutil.copytree(src, dst)
+                    elif src.is_file():
+                        shutil.copy2(src, dst)
+                brdf("reconstruct", "--scene", meta["scene"], "--profile", meta["profile"], "--stages", "pbr,joint",
+                     "--resume", "--out", str(d), "--set", f"pbr.sky_evidence.enabled={enabled}", "--quiet")
+            ev = evaluate(d, d.parent / f"{d.name}_eval")
+            res[variant] = {k: ev.get(k) for k in KEYS}
+        rows[run.name] = {"role": role, "profile": meta["profile"], **res}
         print(json.dumps({run.name: rows[run.name]}), flush=True)
     means = {}
     for role in sorted(set(roles)):
