@@ -17,19 +17,16 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import subprocess
 import sys
 import time
 from pathlib import Path
 
-import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from eval_pipeline import STREETS  # noqa: E402
+from eval_pipeline import STREETS, machine, role_means  # noqa: E402
 
 KEYS = ("nvs_psnr", "nvs_ssim", "relight_psnr", "relight_ssim", "relight_flip", "rerender_psnr", "albedo_si_psnr",
         "normal_mae_deg", "roughness_rmse", "metallic_rmse", "sun_error_deg")
@@ -74,16 +71,8 @@ def main() -> int:
             res["colour_only"] = {k: ev.get(k) for k in KEYS}
         rows[st] = {"role": STREETS[st][0], **res}
         print(json.dumps({st: rows[st]}), flush=True)
-    means = {}
-    for role in sorted({r["role"] for r in rows.values()}):
-        sel = [r for r in rows.values() if r["role"] == role]
-        variants = ["geometry_moved", "geometry_detached"] + (["colour_only"] if all("colour_only" in r for r in sel)
-                                                              else [])
-        means[role] = {v: {k: round(float(np.mean([r[v][k] for r in sel if r[v][k] is not None])), 4)
-                           for k in KEYS if any(r[v][k] is not None for r in sel)} for v in variants}
-        means[role]["streets"] = [s for s, r in rows.items() if r["role"] == role]
-    out = {"machine": {"cpu": platform.processor() or platform.machine(), "cores": os.cpu_count(),
-                       "python": platform.python_version()},
+    means = role_means(rows, ("geometry_moved", "geometry_detached", "colour_only"), KEYS)
+    out = {"machine": machine(),
            "profile": a.profile, "what": "VolumeSettings.priors_move_geometry true (Eq. 4 as written) against false "
            "(the default: the normal and material prior terms move only those attributes), volume and volume2",
            "streets": rows, "means": means, "seconds": round(time.perf_counter() - t0, 1)}

@@ -18,17 +18,16 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
-import shutil
 import subprocess
 import sys
 import time
 from pathlib import Path
 
-import numpy as np
-
 REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from eval_pipeline import machine, role_means, seed_run  # noqa: E402
+
 KEYS = ("rerender_psnr", "relight_psnr", "relight_ssim", "relight_flip", "sun_error_deg", "nvs_psnr",
         "albedo_si_psnr", "normal_mae_deg")
 
@@ -61,27 +60,15 @@ def main() -> int:
         for variant, enabled in (("with", "true"), ("without", "false")):
             d = run.parent / f"{run.name}_sky_{'on' if enabled == 'true' else 'off'}"
             if not (d / "joint" / "done.json").is_file():
-                d.mkdir(parents=True, exist_ok=True)
-                for name in ("run.json", "priors", "volume", "generative_refine", "volume2"):
-                    src, dst = run / name, d / name
-                    if src.is_dir() and not dst.exists():
-                        shutil.copytree(src, dst)
-                    elif src.is_file():
-                        shutil.copy2(src, dst)
+                seed_run(run, d, ("volume", "generative_refine", "volume2"))
                 brdf("reconstruct", "--scene", meta["scene"], "--profile", meta["profile"], "--stages", "pbr,joint",
                      "--resume", "--out", str(d), "--set", f"pbr.sky_evidence.enabled={enabled}", "--quiet")
             ev = evaluate(d, d.parent / f"{d.name}_eval")
             res[variant] = {k: ev.get(k) for k in KEYS}
         rows[run.name] = {"role": role, "profile": meta["profile"], **res}
         print(json.dumps({run.name: rows[run.name]}), flush=True)
-    means = {}
-    for role in sorted(set(roles)):
-        sel = [r for r in rows.values() if r["role"] == role]
-        means[role] = {v: {k: round(float(np.mean([r[v][k] for r in sel if r[v][k] is not None])), 4) for k in KEYS}
-                       for v in ("with", "without")}
-        means[role]["streets"] = len(sel)
-    res = {"machine": {"cpu": platform.processor() or platform.machine(), "cores": os.cpu_count(),
-                       "python": platform.python_version()},
+    means = role_means(rows, ("with", "without"), KEYS)
+    res = {"machine": machine(),
            "what": "pbr + joint with the observed sky held (with, the default) and without, from the same volume2",
            "runs": rows, "means": means, "seconds": round(time.perf_counter() - t0, 1)}
     Path(a.out).parent.mkdir(parents=True, exist_ok=True)

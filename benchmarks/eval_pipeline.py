@@ -153,6 +153,19 @@ def run_row(scene: Path, runs: Path, prefix: str, profile: str, row: str) -> dic
             "evaluation_seconds": ev["seconds"], "denoiser": spec["denoiser"]}
 
 
+def role_means(rows: dict[str, dict], variants, keys) -> dict:
+    """Means per role of per-street rows ``{street: {"role": ..., variant: {key: value}}}``: for
+    each role, each variant's mean of every key (None values left out) and the role's streets."""
+    means = {}
+    for role in sorted({r["role"] for r in rows.values()}):
+        sel = [r for r in rows.values() if r["role"] == role]
+        means[role] = {v: {k: round(float(np.mean([r[v][k] for r in sel if r[v].get(k) is not None])), 4)
+                           for k in keys if any(r[v].get(k) is not None for r in sel)}
+                       for v in variants if all(v in r for r in sel)}
+        means[role]["streets"] = [s for s, r in rows.items() if r["role"] == role]
+    return means
+
+
 def mean_row(rows: list[dict]) -> dict:
     out = {}
     for k in KEYS:

@@ -38,10 +38,11 @@ from core.numerics import LOG_RADIANCE_FLOOR
 from core.pbr.envmap import EnvironmentMap, resample
 from core.pbr.render import PBRSettings, render_pbr
 from core.pbr.visibility import GaussianTracer, TraceSettings
-from core.raster import RasterSettings, rasterize_gaussians
+from core.raster import RasterSettings
 from core.scene_graph import SceneGraph
 from core.stages.early_stop import stalled
-from core.stages.volume import VolumeModel, _bce, _prior_tensors, _views, alignment_loss, lidar_depth_loss, prior_losses
+from core.stages.volume import (VolumeModel, _bce, _prior_tensors, _views, alignment_loss, attribute_prior_losses,
+                                lidar_depth_loss, prior_losses)
 from core.train.optim import GaussianAdam, GaussianLR
 
 
@@ -243,9 +244,7 @@ def run_stage(ctx) -> dict:
             if v.frame_id in pri:
                 terms.update(prior_losses(out, pri[v.frame_id], 0.5))
                 if not cfg.priors_move_geometry:  # as in the volume stages (VolumeSettings)
-                    attr = prior_losses(rasterize_gaussians(world.geometry_detached(), v.camera, settings=rs),
-                                        pri[v.frame_id], 0.5)
-                    terms.update({k: attr[k] for k in ("normal", "albedo", "roughness", "metallic")})
+                    terms.update(attribute_prior_losses(world, v.camera, rs, pri[v.frame_id], 0.5))
                 for k, w in weights.items():
                     if w > 0:
                         l_vol = l_vol + w * terms[k]

@@ -301,8 +301,12 @@ def fit_lighting(graph, bundle, out_dir: str | Path, cfg: PBRStageConfig | None 
     prior_full = np.asarray(est.envmap, np.float32)
     h = cfg.env_height
     m = bundle.manifest
-    hold, sky_stats_obs = None, {"enabled": False, "why": "no sky dome"} if sky is None else None
-    if sky is not None and cfg.sky_evidence.enabled:
+    hold = None
+    if sky is None:
+        sky_stats_obs = {"enabled": False, "why": "no sky dome"}
+    elif not cfg.sky_evidence.enabled:
+        sky_stats_obs = {"enabled": False, "why": "sky_evidence.enabled is false"}
+    else:
         masks = [(f.sky if f.sky is not None else f.gbuf["opacity"].reshape(-1) < 0.5).reshape(
             f.camera.height, f.camera.width).numpy() for f in frames]
         rad_obs, w_obs, floor_obs, sky_stats_obs = observed_sky(sky, [f.camera for f in frames], masks, height=h,
@@ -315,8 +319,6 @@ def fit_lighting(graph, bundle, out_dir: str | Path, cfg: PBRStageConfig | None 
             # the prior E_g holds the observed sky too (what the joint stage's log prior pulls to)
             log_p = torch.log(resample(torch.from_numpy(prior_full).double(), h, 2 * h).clamp_min(LOG_RADIANCE_FLOOR))
             prior_full = resample(torch.exp(ev.hold(log_p)), 512, 1024).numpy().astype(np.float32)
-    elif sky is not None:
-        sky_stats_obs = {"enabled": False, "why": "sky_evidence.enabled is false"}
     prior_t = resample(torch.from_numpy(prior_full).double(), h, 2 * h)
     env = EnvironmentMap(prior_t, log_space=True, requires_grad=True)
     log_prior = env.param.detach().clone()

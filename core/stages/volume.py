@@ -328,6 +328,16 @@ def prior_losses(out, prior: dict[str, torch.Tensor], min_opacity: float) -> dic
     return res
 
 
+def attribute_prior_losses(world: Gaussians, camera, settings, prior: dict[str, torch.Tensor],
+                           min_opacity: float) -> dict[str, torch.Tensor]:
+    """The normal and material terms of :func:`prior_losses` on a second render of ``world`` with
+    its geometry detached (:meth:`core.gaussians.Gaussians.geometry_detached`): they move the
+    normals and materials only (``priors_move_geometry`` False)."""
+    out = rasterize_gaussians(world.geometry_detached(), camera, settings=settings)
+    t = prior_losses(out, prior, min_opacity)
+    return {k: t[k] for k in ("normal", "albedo", "roughness", "metallic")}
+
+
 def lidar_depth_loss(out, px: torch.Tensor, z: torch.Tensor, min_opacity: float = 0.05) -> torch.Tensor:
     """``mean |D / O - z_lidar|`` at the pixels a sweep hits: the expected depth given a hit
     (the composited depth ``D`` is a sum weighted by the opacity; compared undivided, a pixel of
@@ -478,9 +488,8 @@ def run_volume(bundle: SceneBundle, cfg: VolumeSettings, out_dir: str | Path | N
                 # update, not replace: a non-finite alignment term must still be named below
                 terms.update(prior_losses(out, pri[v.frame_id], cfg.prior_min_opacity))
                 if not cfg.priors_move_geometry:
-                    out_attr = rasterize_gaussians(world.geometry_detached(), v.camera, settings=settings)
-                    attr = prior_losses(out_attr, pri[v.frame_id], cfg.prior_min_opacity)
-                    terms.update({k: attr[k] for k in ("normal", "albedo", "roughness", "metallic")})
+                    terms.update(attribute_prior_losses(world, v.camera, settings, pri[v.frame_id],
+                                                        cfg.prior_min_opacity))
                 for k, w in weights.items():
                     if w > 0:
                         loss = loss + w * terms[k]
