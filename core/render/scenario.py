@@ -180,6 +180,9 @@ class Scenario:
     :func:`core.pbr.render.on_objects` leaves out (its lowest 0.15 m). Points on the object itself
     trace its Gaussians from ``shadow_t_min_m``, so it does not shadow its own surface (without
     that exception, 0.2 darkened the car's median luminance by 10-27%)."""
+    indirect_bounces: int = 2
+    """Indirect light of the PBR pass: the approximate diffuse bounces
+    (:attr:`core.pbr.render.PBRSettings.indirect_bounces`; 0 = direct light only, the paper)."""
     denoiser: str = "oidn"
     """``none``, ``oidn`` or ``diffusion``."""
     denoiser_fallback: str | None = "none"
@@ -596,7 +599,8 @@ def render_scenario(graph, scenario: Scenario, out_dir: str | Path, *,
                            shadows=scenario.shadows, normal_offset=scenario.normal_offset_m,
                            trace=TraceSettings(leaf_size=16, t_min=scenario.shadow_t_min_m,
                                                t_min_objects=scenario.object_shadow_t_min_m),
-                           reuse_visibility=len(scenario.views) > 1, adaptive=scenario.adaptive_rays)
+                           reuse_visibility=len(scenario.views) > 1, adaptive=scenario.adaptive_rays,
+                           indirect_bounces=scenario.indirect_bounces)
     with ClipHook(reuse_across_clips=scenario.reuse_visibility_across_requests) as hook:
         res = render_clip(g, env, list(scenario.views), out_dir, settings=settings, lights=lights,
                           outputs=list(scenario.outputs), denoiser=scenario.denoiser,

@@ -54,6 +54,9 @@ class JointSettings:
     """Optimisation steps (one training frame each)."""
     pixels: int = 1024
     """Random non-sky pixels of the PBR term per step (the paper: 2048)."""
+    indirect_bounces: int = 2
+    """Indirect light of the PBR pass during the stage, as a relight renders it: the approximate diffuse bounces
+    (:attr:`core.pbr.render.PBRSettings.indirect_bounces`; 0 = direct light only, the paper)."""
     rays_per_pixel: int = 16
     """Rays per pixel of the PBR pass during the stage (the paper: 512)."""
     lambda_pbr: float = 0.1
@@ -157,6 +160,7 @@ def run_stage(ctx) -> dict:
                 v.nonsky = pri[v.frame_id]["mask"].to(torch.float32)[..., None]
         ck = ctx.resume_dir
         state = None
+        start_graph = graph  # the stage's input: its shadow rays, also after a resume
         if (ck / "state.pt").is_file():
             try:
                 state = torch.load(ck / "state.pt", map_location="cpu", weights_only=True)
@@ -166,14 +170,15 @@ def run_stage(ctx) -> dict:
             graph = SceneGraph.load(ck / state["graph_file"])
             sky.load_state_dict(state["sky"])
         model = VolumeModel(graph, sky)
-        # shadow BVHs of the start of the stage: static once, moving nodes per frame
-        static = graph._static_part().detach()
+        # shadow BVHs of the start of the stage (its input, also when resumed, so a resumed run
+        # traces what an uninterrupted one does): static once, moving nodes per frame
+        static = start_graph._static_part().detach()
         ts = TraceSettings(leaf_size=16)
-        shadow = graph.shadow_static()  # the static part plus the completed facades (core.stages.occluders)
+        shadow = start_graph.shadow_static()  # the static part plus the completed facades (core.stages.occluders)
         static_tracer = GaussianTracer.from_gaussians(shadow, ts) if shadow.num else None
         tracers = {}
         for v in train:
-            g = graph.compose(v.time).detach()
+            g = start_graph.compose(v.time).detach()
             tr = [static_tracer] if static_tracer is not None else []
             if g.num > static.num:
                 tr.append(GaussianTracer.from_gaussians(g.index(slice(static.num, None)), ts))
@@ -201,7 +206,7 @@ def run_stage(ctx) -> dict:
                 env.param = ev_low.hold(env_leaf)
         m = b.manifest
         ps = PBRSettings(backend="torch", rays_per_pixel=cfg.rays_per_pixel, exposure=m.ldr_exposure,
-                         gamma=m.ldr_gamma, threads=cfg.threads, seed=cfg.seed)
+                         gamma=m.ldr_gamma, threads=cfg.threads, seed=cfg.seed, indirect_bounces=cfg.indirect_bounces)
         rs = RasterSettings(threads=cfg.threads)
         lr = _scaled_lr(cfg.lr_scale)
         opts = [GaussianAdam(g, lr) for g in model.containers()]

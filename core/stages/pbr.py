@@ -63,6 +63,9 @@ class PBRStageConfig:
     """Optimisation steps (one training frame each)."""
     pixels: int = 2048
     """Random non-sky pixels per step (the paper's training subset)."""
+    indirect_bounces: int = 2
+    """Indirect light of the PBR pass during the stage, as a relight renders it: the approximate diffuse bounces
+    (:attr:`core.pbr.render.PBRSettings.indirect_bounces`; 0 = direct light only, the paper)."""
     rays_per_pixel: int = 16
     """Rays per pixel of the PBR pass during the stage (MIS)."""
     lr: float = 0.03
@@ -337,7 +340,7 @@ def fit_lighting(graph, bundle, out_dir: str | Path, cfg: PBRStageConfig | None 
                                                     align_corners=False)[0].permute(1, 2, 0)
         env.param = hold.hold(p) if hold is not None else p
     ps = PBRSettings(backend="torch", rays_per_pixel=cfg.rays_per_pixel, exposure=m.ldr_exposure,
-                     gamma=m.ldr_gamma, threads=cfg.threads, seed=cfg.seed)
+                     gamma=m.ldr_gamma, threads=cfg.threads, seed=cfg.seed, indirect_bounces=cfg.indirect_bounces)
     gen = torch.Generator().manual_seed(cfg.seed)
     eval_idx = []
     for f in frames:

@@ -64,6 +64,9 @@ class EvalSettings:
     """Shadow-ray start offset along the normal, metres (:attr:`core.render.scenario.Scenario.normal_offset_m`)."""
     shadow_t_min_m: float = 0.5
     """Shadow rays ignore Gaussians this close, metres (:attr:`core.render.scenario.Scenario.shadow_t_min_m`)."""
+    indirect_bounces: int = 2
+    """Indirect light of the PBR renders: the approximate diffuse bounces
+    (:attr:`core.pbr.render.PBRSettings.indirect_bounces`; 0 = direct light only, the paper)."""
     object_shadow_t_min_m: float = 0.05
     """The same for objects an edit placed (:attr:`core.render.scenario.Scenario.object_shadow_t_min_m`;
     the evaluation renders no edits, so only a request that passes edits sees it)."""
@@ -161,6 +164,7 @@ def evaluate_run(run_dir: str | Path, bundle=None, settings: EvalSettings | None
                       base_exposure=ex, gamma=gamma, rays_per_pixel=s.rays_per_pixel, denoiser=s.denoiser,
                       denoiser_fallback=None, normal_offset_m=s.normal_offset_m,
                       shadow_t_min_m=s.shadow_t_min_m, object_shadow_t_min_m=s.object_shadow_t_min_m,
+                      indirect_bounces=s.indirect_bounces,
                       outputs=("png",))
         with tempfile.TemporaryDirectory(prefix="brdf-eval-") as tmp:
             r = render_scenario(graph, sc, tmp)

@@ -50,8 +50,12 @@ def _view(eye, target, w=32, h=24, fov_deg=60.0, sky=False, depth=0.0):
     return (Camera.from_intrinsics(c2w, f, f, w / 2, h / 2, w, h), np.full((h, w), sky), np.full((h, w), depth))
 
 
+#: the upward completion alone: one layer of disks, the observed wall not backed
+UPWARD_ONLY = {"layers": 1, "fill_observed": False}
+
+
 def test_an_unseen_wall_top_is_extended_to_the_cap_with_wall_disks():
-    s = OccluderSettings(max_height_m=12.0)
+    s = OccluderSettings(max_height_m=12.0, **UPWARD_ONLY)
     occ = complete_occluders(_wall(), [], s)  # no frame saw anything above the wall (no path: no continuation)
     centres, tops, _bottoms, normals = facade_columns(_wall(), s)
     assert len(centres) == 20 and np.allclose(normals, [0.0, -1.0, 0.0], atol=1e-6)
@@ -91,7 +95,8 @@ def test_nothing_for_ground_kerbs_or_an_empty_scene():
 
 
 @pytest.mark.parametrize("field,value", [("cell_m", 0.0), ("step_m", float("nan")), ("opacity", 1.0),
-                                         ("min_count", 0), ("max_height_m", -1.0)])
+                                         ("min_count", 0), ("max_height_m", -1.0), ("layers", 0), ("layers", 2.0),
+                                         ("inset_m", 0.0), ("layer_spacing_m", -0.1), ("fill_observed", 1)])
 def test_settings_are_validated_naming_the_field(field, value):
     with pytest.raises(ConfigError, match=field):
         OccluderSettings(**{field: value})
@@ -128,7 +133,7 @@ def test_scene_graph_keeps_occluders_for_shadows_only(tmp_path):
 def test_walls_continue_along_the_path_beyond_what_was_seen():
     wall = _wall(x0=0.0, x1=10.0, z1=4.0)
     path = [_view((x, 0.0, 1.5), (x + 10.0, 0.0, 1.5)) for x in (0.0, 5.0)]  # nothing seen through
-    s = OccluderSettings(max_height_m=8.0, extend_m=3.0)
+    s = OccluderSettings(max_height_m=8.0, extend_m=3.0, **UPWARD_ONLY)
     occ = complete_occluders(wall, path, s).means.numpy()
     behind, ahead = occ[occ[:, 0] < 0.0], occ[occ[:, 0] > 10.0]
     assert len(behind) and len(ahead)
@@ -153,3 +158,36 @@ def test_continued_walls_are_as_tall_as_the_roof_line_their_side_showed():
     far_behind = m[m[:, 0] < -1.6]  # outside that frame: only the cap stops these
     assert len(far_behind) and far_behind[:, 2].max() < 5.0
     assert m[(m[:, 0] > 0) & (m[:, 0] < 10), 2].max() < 5.0  # the seen wall stops at the roof line too
+
+
+def test_the_observed_wall_is_backed_behind_its_surface_up_to_its_top():
+    wall = _wall(z1=4.0)  # at y = 5, facing -y (the street)
+    s = OccluderSettings(max_height_m=4.0, layers=1)  # nothing to complete above: the backing alone
+    occ = complete_occluders(wall, [], s).means.numpy()
+    up = complete_occluders(wall, [], OccluderSettings(max_height_m=4.0, **UPWARD_ONLY)).means.numpy()
+    back = occ[len(up):] if len(up) else occ
+    assert len(back) > 0
+    _c, tops, bottoms, _n = facade_columns(wall, s)
+    assert back[:, 2].min() >= bottoms.min() - 1e-9 and back[:, 2].max() <= tops.max() + 1e-9
+    assert (back[:, 1] > 5.25 + 0.2).all()  # behind the cell centres, away from the street
+    # a frame that saw far behind the wall (depth 500 m through it) carves the backing too
+    through = _view((5.0, -10.0, 2.0), (5.0, 5.0, 2.0), fov_deg=90.0, depth=500.0)
+    assert complete_occluders(wall, [through], s).num < len(occ)
+
+
+def test_three_layers_stop_a_steep_shadow_ray_that_passes_one():
+    from core.pbr.visibility import GaussianTracer, TraceSettings
+
+    wall = _wall(z1=2.0)
+    one = complete_occluders(wall, [], OccluderSettings(max_height_m=10.0, **UPWARD_ONLY))
+    three = complete_occluders(wall, [], OccluderSettings(max_height_m=10.0, layers=3, fill_observed=False))
+    assert three.num == 3 * one.num
+    # rays from the street (y = 0) crossing the completed part of the wall face-on at heights
+    # between and on the disks' centres
+    zs = np.linspace(4.0, 8.0, 41)
+    org = torch.from_numpy(np.stack([np.full_like(zs, 5.0), np.zeros_like(zs), zs], -1))
+    dirs = torch.tensor([[0.0, 1.0, 0.0]], dtype=torch.float64).expand(len(zs), 3)
+    v1 = GaussianTracer.from_gaussians(one, TraceSettings(t_min=0.01))(org, dirs)
+    v3 = GaussianTracer.from_gaussians(three, TraceSettings(t_min=0.01))(org, dirs)
+    assert float(v1.max()) > 0.03  # one layer leaks between its disks
+    assert float(v3.max()) < 0.01
