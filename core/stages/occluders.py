@@ -80,6 +80,12 @@ class OccluderSettings:
     let well under 1% through."""
     layer_spacing_m: float = 0.25
     """Distance between the layers of a wall, metres (against the wall's normal)."""
+    wall_tolerance_m: float = 1.0
+    """A side's wall line is the median distance of its columns from the capture path; only
+    columns within this of it are continued along the path (a tree, a pole or a parked van at
+    the end of what was seen would otherwise be continued as a wall: measured on the default
+    scene, the right side's first columns were a tree 2.5 m in front of the facade and the left
+    side's first one a van in the parking lane)."""
     extend_m: float = 20.0
     """Facades are continued this far along the capture path beyond both ends of what was seen
     (0 = off), full height: a forward camera never sees the walls beside and behind its first
@@ -87,7 +93,8 @@ class OccluderSettings:
     road's largest shadow). The same sky carving applies."""
 
     def __post_init__(self) -> None:
-        for k in ("cell_m", "step_m", "max_height_m", "opacity", "depth_margin_m", "inset_m", "layer_spacing_m"):
+        for k in ("cell_m", "step_m", "max_height_m", "opacity", "depth_margin_m", "inset_m", "layer_spacing_m",
+                  "wall_tolerance_m"):
             v = getattr(self, k)
             if not (isinstance(v, (int, float)) and np.isfinite(v) and v > 0):
                 raise ConfigError(f"{k}: must be a finite number > 0, got {v!r}")
@@ -170,7 +177,8 @@ def _continued_columns(centres, bottoms, normals, roof, views, s: OccluderSettin
     d = d / np.linalg.norm(d)
     lat = np.array([-d[1], d[0]])
     along = centres @ d
-    side = np.sign((centres - pos[0, :2]) @ lat)
+    offset = (centres - pos[0, :2]) @ lat
+    side = np.sign(offset)
     steps = np.arange(1, int(np.floor(s.extend_m / s.cell_m)) + 1) * s.cell_m
     out_c, out_z, out_cap, out_n = [], [], [], []
     for sd in (-1.0, 1.0):
@@ -179,8 +187,9 @@ def _continued_columns(centres, bottoms, normals, roof, views, s: OccluderSettin
             continue
         roofs = roof[on & np.isfinite(roof)]
         cap = float(np.median(roofs)) if len(roofs) else s.max_height_m
-        for end, sign in ((along[on].min(), -1.0), (along[on].max(), 1.0)):
-            sl = on & (np.abs(along - end) <= s.cell_m)  # the wall's last seen slice
+        wall = on & (np.abs(offset - np.median(offset[on])) <= s.wall_tolerance_m)  # the side's wall line
+        for end, sign in ((along[wall].min(), -1.0), (along[wall].max(), 1.0)):
+            sl = wall & (np.abs(along - end) <= s.cell_m)  # the wall's last seen slice
             for shift in steps:
                 out_c.append(centres[sl] + sign * shift * d)
                 out_z.append(bottoms[sl])

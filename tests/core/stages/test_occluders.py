@@ -96,7 +96,8 @@ def test_nothing_for_ground_kerbs_or_an_empty_scene():
 
 @pytest.mark.parametrize("field,value", [("cell_m", 0.0), ("step_m", float("nan")), ("opacity", 1.0),
                                          ("min_count", 0), ("max_height_m", -1.0), ("layers", 0), ("layers", 2.0),
-                                         ("inset_m", 0.0), ("layer_spacing_m", -0.1), ("fill_observed", 1)])
+                                         ("inset_m", 0.0), ("layer_spacing_m", -0.1), ("fill_observed", 1),
+                                         ("wall_tolerance_m", 0.0)])
 def test_settings_are_validated_naming_the_field(field, value):
     with pytest.raises(ConfigError, match=field):
         OccluderSettings(**{field: value})
@@ -191,3 +192,21 @@ def test_three_layers_stop_a_steep_shadow_ray_that_passes_one():
     v3 = GaussianTracer.from_gaussians(three, TraceSettings(t_min=0.01))(org, dirs)
     assert float(v1.max()) > 0.03  # one layer leaks between its disks
     assert float(v3.max()) < 0.01
+
+
+def test_a_tree_in_front_of_the_wall_is_not_continued_as_the_wall():
+    # the wall from x = 2 to 10 at y = 5; a "tree" (a column of facade-like disks at y = 3, x = 0.5)
+    # stands before its start: the continuation behind must follow the wall's line, not the tree's
+    wall = _wall(x0=2.0, x1=10.0, z1=4.0)
+    tree = _flat(np.array([[0.5, 3.0, z] for z in np.arange(2.0, 4.0, 0.25)]), (0.0, -1.0, 0.0), half=0.25)
+    from core.gaussians import Gaussians as G
+
+    scene = G.cat([wall, tree])
+    path = [_view((x, 0.0, 1.5), (x + 10.0, 0.0, 1.5)) for x in (0.0, 5.0)]
+    s = OccluderSettings(max_height_m=8.0, extend_m=3.0, **UPWARD_ONLY)
+    occ = complete_occluders(scene, path, s).means.numpy()
+    behind = occ[occ[:, 0] < 0.0]
+    assert len(behind) and np.allclose(behind[:, 1], 5.25, atol=0.26)  # on the wall's line (cell centres)
+    loose = complete_occluders(scene, path, OccluderSettings(max_height_m=8.0, extend_m=3.0, wall_tolerance_m=100.0,
+                                                             **UPWARD_ONLY)).means.numpy()
+    assert (np.abs(loose[loose[:, 0] < 0.0, 1] - 3.25) < 0.26).any()  # without the line test the tree is continued
