@@ -54,6 +54,13 @@ class JointSettings:
     """Optimisation steps (one training frame each)."""
     pixels: int = 1024
     """Random non-sky pixels of the PBR term per step (the paper: 2048)."""
+    shadow_t_min_m: float = 0.5
+    """Shadow rays of the stage ignore Gaussians nearer than this, metres: as a relight traces
+    (:attr:`core.render.scenario.Scenario.shadow_t_min_m`), so the map is fitted under the
+    visibility it is rendered with (and the indirect term's, which depends on it)."""
+    normal_offset_m: float = 0.1
+    """Shadow rays start this far along the normal, metres (as
+    :attr:`core.render.scenario.Scenario.normal_offset_m`)."""
     indirect_bounces: int = 2
     """Indirect light of the PBR pass during the stage, as a relight renders it: the approximate diffuse bounces
     (:attr:`core.pbr.render.PBRSettings.indirect_bounces`; 0 = direct light only, the paper)."""
@@ -117,7 +124,10 @@ class JointSettings:
                                ("early_stop_every", self.early_stop_every >= 0),
                                ("early_stop_patience", self.early_stop_patience >= 1),
                                ("early_stop_min_delta", 0 <= self.early_stop_min_delta < 1),
-                               ("rays_per_pixel", self.rays_per_pixel >= 1), ("lambda_pbr", self.lambda_pbr >= 0),
+                               ("rays_per_pixel", self.rays_per_pixel >= 1),
+                               ("shadow_t_min_m", 0 <= self.shadow_t_min_m <= 100),
+                               ("normal_offset_m", 0 <= self.normal_offset_m <= 10),
+                               ("indirect_bounces", isinstance(self.indirect_bounces, int) and 0 <= self.indirect_bounces <= 16), ("lambda_pbr", self.lambda_pbr >= 0),
                                ("lr_scale", self.lr_scale > 0), ("env_lr", self.env_lr > 0),
                                ("max_frames", self.max_frames >= 1), ("threads", self.threads >= 1)) if not ok]
         if bad:
@@ -173,7 +183,7 @@ def run_stage(ctx) -> dict:
         # shadow BVHs of the start of the stage (its input, also when resumed, so a resumed run
         # traces what an uninterrupted one does): static once, moving nodes per frame
         static = start_graph._static_part().detach()
-        ts = TraceSettings(leaf_size=16)
+        ts = TraceSettings(leaf_size=16, t_min=cfg.shadow_t_min_m)
         shadow = start_graph.shadow_static()  # the static part plus the completed facades (core.stages.occluders)
         static_tracer = GaussianTracer.from_gaussians(shadow, ts) if shadow.num else None
         tracers = {}
@@ -206,7 +216,8 @@ def run_stage(ctx) -> dict:
                 env.param = ev_low.hold(env_leaf)
         m = b.manifest
         ps = PBRSettings(backend="torch", rays_per_pixel=cfg.rays_per_pixel, exposure=m.ldr_exposure,
-                         gamma=m.ldr_gamma, threads=cfg.threads, seed=cfg.seed, indirect_bounces=cfg.indirect_bounces)
+                         gamma=m.ldr_gamma, threads=cfg.threads, seed=cfg.seed, indirect_bounces=cfg.indirect_bounces,
+                         normal_offset=cfg.normal_offset_m)
         rs = RasterSettings(threads=cfg.threads)
         lr = _scaled_lr(cfg.lr_scale)
         opts = [GaussianAdam(g, lr) for g in model.containers()]

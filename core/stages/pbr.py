@@ -63,6 +63,13 @@ class PBRStageConfig:
     """Optimisation steps (one training frame each)."""
     pixels: int = 2048
     """Random non-sky pixels per step (the paper's training subset)."""
+    shadow_t_min_m: float = 0.5
+    """Shadow rays of the stage ignore Gaussians nearer than this, metres: as a relight traces
+    (:attr:`core.render.scenario.Scenario.shadow_t_min_m`), so the map is fitted under the
+    visibility it is rendered with (and the indirect term's, which depends on it)."""
+    normal_offset_m: float = 0.1
+    """Shadow rays start this far along the normal, metres (as
+    :attr:`core.render.scenario.Scenario.normal_offset_m`)."""
     indirect_bounces: int = 2
     """Indirect light of the PBR pass during the stage, as a relight renders it: the approximate diffuse bounces
     (:attr:`core.pbr.render.PBRSettings.indirect_bounces`; 0 = direct light only, the paper)."""
@@ -143,7 +150,10 @@ class PBRStageConfig:
                                ("early_stop_every", self.early_stop_every >= 0),
                                ("early_stop_patience", self.early_stop_patience >= 1),
                                ("early_stop_min_delta", 0 <= self.early_stop_min_delta < 1),
-                               ("rays_per_pixel", self.rays_per_pixel >= 1), ("lr", self.lr > 0),
+                               ("rays_per_pixel", self.rays_per_pixel >= 1),
+                               ("shadow_t_min_m", 0 <= self.shadow_t_min_m <= 100),
+                               ("normal_offset_m", 0 <= self.normal_offset_m <= 10),
+                               ("indirect_bounces", isinstance(self.indirect_bounces, int) and 0 <= self.indirect_bounces <= 16), ("lr", self.lr > 0),
                                ("lambda_e_start", self.lambda_e_start >= 0), ("lambda_e_end", self.lambda_e_end >= 0),
                                ("env_height", self.env_height >= 8), ("max_frames", self.max_frames >= 1),
                                ("coarse_height", self.coarse_height == 0 or 2 <= self.coarse_height <= self.env_height),
@@ -172,7 +182,8 @@ def _frames(graph, bundle, cfg: PBRStageConfig) -> list[_FrameData]:
     rs = RasterSettings(threads=cfg.threads)
     static = graph._static_part().detach()
     shadow = graph.shadow_static()  # the static part plus the completed facades (core.stages.occluders)
-    static_tracer = GaussianTracer.from_gaussians(shadow, TraceSettings(leaf_size=16)) if shadow.num else None
+    ts = TraceSettings(leaf_size=16, t_min=cfg.shadow_t_min_m)
+    static_tracer = GaussianTracer.from_gaussians(shadow, ts) if shadow.num else None
     out = []
     with torch.no_grad():
         for i in pick:
@@ -185,7 +196,7 @@ def _frames(graph, bundle, cfg: PBRStageConfig) -> list[_FrameData]:
             tracers = [static_tracer] if static_tracer is not None else []
             if g.num > static.num:
                 tracers.append(GaussianTracer.from_gaussians(g.index(slice(static.num, None)),
-                                                             TraceSettings(leaf_size=16)))
+                                                             ts))
             target = torch.from_numpy(bundle.load_image(fr)).to(torch.float32).reshape(-1, 3)
             sky = bundle.load_sky_mask(fr)
             o = gb["opacity"].reshape(-1)
@@ -340,7 +351,8 @@ def fit_lighting(graph, bundle, out_dir: str | Path, cfg: PBRStageConfig | None 
                                                     align_corners=False)[0].permute(1, 2, 0)
         env.param = hold.hold(p) if hold is not None else p
     ps = PBRSettings(backend="torch", rays_per_pixel=cfg.rays_per_pixel, exposure=m.ldr_exposure,
-                     gamma=m.ldr_gamma, threads=cfg.threads, seed=cfg.seed, indirect_bounces=cfg.indirect_bounces)
+                     gamma=m.ldr_gamma, threads=cfg.threads, seed=cfg.seed, indirect_bounces=cfg.indirect_bounces,
+                     normal_offset=cfg.normal_offset_m)
     gen = torch.Generator().manual_seed(cfg.seed)
     eval_idx = []
     for f in frames:
