@@ -50,6 +50,7 @@ def make(seed: Path, out: Path, scene: str, name: str) -> Path:
     from core.bundle import open_bundle
     from core.raster import RasterSettings
     from core.scene_graph import SceneGraph
+    from core.stages.chain import RunDir
     from core.stages.occluders import OccluderSettings, capture_views, complete_occluders
     from core.stages.volume import _views
     from core.synth.evaluate import EvalSettings, evaluate_run
@@ -65,7 +66,10 @@ def make(seed: Path, out: Path, scene: str, name: str) -> Path:
             shutil.copytree(src, dst / part)
         elif src.is_file():
             shutil.copy2(src, dst / part)
-    gfile = dst / "volume2" / "scene_graph.pt"
+    found = RunDir(dst).latest_graph_dir()
+    if found is None or found[1] != "volume2":
+        raise SystemExit(f"{seed}: its volume2 stage is not done")
+    gfile = found[0] / "scene_graph.pt"
     graph = SceneGraph.load(gfile)
     b = open_bundle(scene)
     graph.occluders = complete_occluders(graph._static_part().detach(),
