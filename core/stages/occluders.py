@@ -187,7 +187,10 @@ def _continued_columns(centres, bottoms, normals, roof, views, s: OccluderSettin
             continue
         roofs = roof[on & np.isfinite(roof)]
         cap = float(np.median(roofs)) if len(roofs) else s.max_height_m
-        wall = on & (np.abs(offset - np.median(offset[on])) <= s.wall_tolerance_m)  # the side's wall line
+        dist = np.abs(offset - np.median(offset[on]))
+        # the side's wall line; with an even count split far apart the median lies between
+        # columns, and the nearest ones stand for it
+        wall = on & (dist <= max(s.wall_tolerance_m, float(dist[on].min())))
         for end, sign in ((along[wall].min(), -1.0), (along[wall].max(), 1.0)):
             sl = wall & (np.abs(along - end) <= s.cell_m)  # the wall's last seen slice
             for shift in steps:

@@ -210,3 +210,16 @@ def test_a_tree_in_front_of_the_wall_is_not_continued_as_the_wall():
     loose = complete_occluders(scene, path, OccluderSettings(max_height_m=8.0, extend_m=3.0, wall_tolerance_m=100.0,
                                                              **UPWARD_ONLY)).means.numpy()
     assert (np.abs(loose[loose[:, 0] < 0.0, 1] - 3.25) < 0.26).any()  # without the line test the tree is continued
+
+
+def test_a_side_of_two_far_apart_columns_still_continues():
+    # two columns on one side, 3 m apart across the street: the median of their offsets lies
+    # between them, more than wall_tolerance_m from each; the nearest stand for the wall line
+    a = _flat(np.array([[4.0, 3.0, z] for z in np.arange(0.25, 3.0, 0.25)]), (0.0, -1.0, 0.0), half=0.25)
+    b = _flat(np.array([[6.0, 6.0, z] for z in np.arange(0.25, 3.0, 0.25)]), (0.0, -1.0, 0.0), half=0.25)
+    from core.gaussians import Gaussians as G
+
+    path = [_view((x, 0.0, 1.5), (x + 10.0, 0.0, 1.5)) for x in (0.0, 5.0)]
+    occ = complete_occluders(G.cat([a, b]), path, OccluderSettings(max_height_m=6.0, extend_m=2.0, **UPWARD_ONLY))
+    m = occ.means.numpy()
+    assert occ.num > 0 and np.isfinite(m).all() and (m[:, 0] < 4.0).any() and (m[:, 0] > 6.0).any()
