@@ -65,12 +65,12 @@ from core.errors import ConfigError, ShapeError
 from core.gaussians import Gaussians
 from core.io.exr import write_exr
 from core.io.video import write_mp4
+from core.numerics import require_finite
+from core.pbr.brdf import sample_cosine
 from core.pbr.envmap import EnvironmentMap, luminance
 from core.pbr.integrator import NativeEnv, VisibilityCache, integrate
 from core.pbr.lights import direct_lighting, lights_to_world
 from core.pbr.mis import estimate_reflected
-from core.numerics import require_finite
-from core.pbr.brdf import sample_cosine
 from core.pbr.visibility import GaussianTracer, TraceSettings
 from core.raster import RasterSettings, rasterize_gaussians
 from core.scene_graph import SceneGraph
@@ -308,7 +308,7 @@ def sample_pixels(opacity: torch.Tensor, n: int = 2048, *, generator: torch.Gene
 
 
 def indirect_light(points: torch.Tensor, normals: torch.Tensor, albedo: torch.Tensor, metallic: torch.Tensor,
-                   direct: torch.Tensor, tracers, *, bounces: int = 2, rays: int = 8, normal_offset: float = 0.02,
+                   direct: torch.Tensor, tracers, *, bounces: int = 2, rays: int = 4, normal_offset: float = 0.02,
                    generator: torch.Generator | None = None) -> torch.Tensor:
     """Approximate diffuse indirect light ``[P, 3]`` (same units as ``direct``) at shading points.
 

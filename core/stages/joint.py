@@ -36,34 +36,25 @@ from core.lighting.sky_evidence import SkyEvidence
 from core.metrics import ssim
 from core.numerics import LOG_RADIANCE_FLOOR
 from core.pbr.envmap import EnvironmentMap, resample
-from core.pbr.render import PBRSettings, render_pbr
-from core.pbr.visibility import GaussianTracer, TraceSettings
+from core.pbr.render import render_pbr
+from core.pbr.visibility import GaussianTracer
 from core.raster import RasterSettings
 from core.scene_graph import SceneGraph
 from core.stages.early_stop import stalled
+from core.stages.pbr import StageShading
 from core.stages.volume import (VolumeModel, _bce, _prior_tensors, _views, alignment_loss, attribute_prior_losses,
                                 lidar_depth_loss, prior_losses)
 from core.train.optim import GaussianAdam, GaussianLR
 
 
 @dataclass(frozen=True)
-class JointSettings:
+class JointSettings(StageShading):
     """Settings of the joint refinement stage."""
 
     iterations: int = 300
     """Optimisation steps (one training frame each)."""
     pixels: int = 1024
     """Random non-sky pixels of the PBR term per step (the paper: 2048)."""
-    shadow_t_min_m: float = 0.5
-    """Shadow rays of the stage ignore Gaussians nearer than this, metres: as a relight traces
-    (:attr:`core.render.scenario.Scenario.shadow_t_min_m`), so the map is fitted under the
-    visibility it is rendered with (and the indirect term's, which depends on it)."""
-    normal_offset_m: float = 0.1
-    """Shadow rays start this far along the normal, metres (as
-    :attr:`core.render.scenario.Scenario.normal_offset_m`)."""
-    indirect_bounces: int = 2
-    """Indirect light of the PBR pass during the stage, as a relight renders it: the approximate diffuse bounces
-    (:attr:`core.pbr.render.PBRSettings.indirect_bounces`; 0 = direct light only, the paper)."""
     rays_per_pixel: int = 16
     """Rays per pixel of the PBR pass during the stage (the paper: 512)."""
     lambda_pbr: float = 0.1
@@ -124,12 +115,10 @@ class JointSettings:
                                ("early_stop_every", self.early_stop_every >= 0),
                                ("early_stop_patience", self.early_stop_patience >= 1),
                                ("early_stop_min_delta", 0 <= self.early_stop_min_delta < 1),
-                               ("rays_per_pixel", self.rays_per_pixel >= 1),
-                               ("shadow_t_min_m", 0 <= self.shadow_t_min_m <= 100),
-                               ("normal_offset_m", 0 <= self.normal_offset_m <= 10),
-                               ("indirect_bounces", isinstance(self.indirect_bounces, int) and 0 <= self.indirect_bounces <= 16), ("lambda_pbr", self.lambda_pbr >= 0),
+                               ("rays_per_pixel", self.rays_per_pixel >= 1), ("lambda_pbr", self.lambda_pbr >= 0),
                                ("lr_scale", self.lr_scale > 0), ("env_lr", self.env_lr > 0),
                                ("max_frames", self.max_frames >= 1), ("threads", self.threads >= 1)) if not ok]
+        bad += self.shading_errors()
         if bad:
             raise ConfigError(f"JointSettings: out of range: {', '.join(bad)} ({self})")
 
@@ -183,7 +172,7 @@ def run_stage(ctx) -> dict:
         # shadow BVHs of the start of the stage (its input, also when resumed, so a resumed run
         # traces what an uninterrupted one does): static once, moving nodes per frame
         static = start_graph._static_part().detach()
-        ts = TraceSettings(leaf_size=16, t_min=cfg.shadow_t_min_m)
+        ts = cfg.trace_settings()
         shadow = start_graph.shadow_static()  # the static part plus the completed facades (core.stages.occluders)
         static_tracer = GaussianTracer.from_gaussians(shadow, ts) if shadow.num else None
         tracers = {}
@@ -215,9 +204,8 @@ def run_stage(ctx) -> dict:
             if ev_low is not None:
                 env.param = ev_low.hold(env_leaf)
         m = b.manifest
-        ps = PBRSettings(backend="torch", rays_per_pixel=cfg.rays_per_pixel, exposure=m.ldr_exposure,
-                         gamma=m.ldr_gamma, threads=cfg.threads, seed=cfg.seed, indirect_bounces=cfg.indirect_bounces,
-                         normal_offset=cfg.normal_offset_m)
+        ps = cfg.pbr_settings(rays_per_pixel=cfg.rays_per_pixel, exposure=m.ldr_exposure, gamma=m.ldr_gamma,
+                              threads=cfg.threads, seed=cfg.seed)
         rs = RasterSettings(threads=cfg.threads)
         lr = _scaled_lr(cfg.lr_scale)
         opts = [GaussianAdam(g, lr) for g in model.containers()]

@@ -56,23 +56,47 @@ from core.stages.early_stop import stalled
 
 
 @dataclass(frozen=True)
-class PBRStageConfig:
+class StageShading:
+    """How the pbr and joint stages render their physical term: as a relight renders it
+    (:class:`core.render.scenario.Scenario`), so the map is fitted under the visibility and the
+    indirect light it is rendered with. Both stages' settings extend this."""
+
+    shadow_t_min_m: float = 0.5
+    """Shadow rays of the stage ignore Gaussians nearer than this, metres
+    (:attr:`core.render.scenario.Scenario.shadow_t_min_m`)."""
+    normal_offset_m: float = 0.1
+    """Shadow rays start this far along the normal, metres
+    (:attr:`core.render.scenario.Scenario.normal_offset_m`)."""
+    indirect_bounces: int = 2
+    """Approximate diffuse bounces of the PBR pass (:attr:`core.pbr.render.PBRSettings.indirect_bounces`;
+    0 = direct light only, the paper)."""
+
+    def shading_errors(self) -> list[str]:
+        """Names of the out-of-range shading fields."""
+        b = self.indirect_bounces
+        return [n for n, ok in (("shadow_t_min_m", 0 <= self.shadow_t_min_m <= 100),
+                                ("normal_offset_m", 0 <= self.normal_offset_m <= 10),
+                                ("indirect_bounces", isinstance(b, int) and not isinstance(b, bool) and 0 <= b <= 16))
+                if not ok]
+
+    def trace_settings(self) -> TraceSettings:
+        """The shadow rays of the stage."""
+        return TraceSettings(leaf_size=16, t_min=self.shadow_t_min_m)
+
+    def pbr_settings(self, **kw) -> PBRSettings:
+        """The stage's (differentiable, torch) PBR pass; ``kw``: the other :class:`PBRSettings` fields."""
+        return PBRSettings(backend="torch", normal_offset=self.normal_offset_m, indirect_bounces=self.indirect_bounces,
+                           **kw)
+
+
+@dataclass(frozen=True)
+class PBRStageConfig(StageShading):
     """Settings of the lighting-only PBR stage."""
 
     iterations: int = 150
     """Optimisation steps (one training frame each)."""
     pixels: int = 2048
     """Random non-sky pixels per step (the paper's training subset)."""
-    shadow_t_min_m: float = 0.5
-    """Shadow rays of the stage ignore Gaussians nearer than this, metres: as a relight traces
-    (:attr:`core.render.scenario.Scenario.shadow_t_min_m`), so the map is fitted under the
-    visibility it is rendered with (and the indirect term's, which depends on it)."""
-    normal_offset_m: float = 0.1
-    """Shadow rays start this far along the normal, metres (as
-    :attr:`core.render.scenario.Scenario.normal_offset_m`)."""
-    indirect_bounces: int = 2
-    """Indirect light of the PBR pass during the stage, as a relight renders it: the approximate diffuse bounces
-    (:attr:`core.pbr.render.PBRSettings.indirect_bounces`; 0 = direct light only, the paper)."""
     rays_per_pixel: int = 16
     """Rays per pixel of the PBR pass during the stage (MIS)."""
     lr: float = 0.03
@@ -150,15 +174,13 @@ class PBRStageConfig:
                                ("early_stop_every", self.early_stop_every >= 0),
                                ("early_stop_patience", self.early_stop_patience >= 1),
                                ("early_stop_min_delta", 0 <= self.early_stop_min_delta < 1),
-                               ("rays_per_pixel", self.rays_per_pixel >= 1),
-                               ("shadow_t_min_m", 0 <= self.shadow_t_min_m <= 100),
-                               ("normal_offset_m", 0 <= self.normal_offset_m <= 10),
-                               ("indirect_bounces", isinstance(self.indirect_bounces, int) and 0 <= self.indirect_bounces <= 16), ("lr", self.lr > 0),
+                               ("rays_per_pixel", self.rays_per_pixel >= 1), ("lr", self.lr > 0),
                                ("lambda_e_start", self.lambda_e_start >= 0), ("lambda_e_end", self.lambda_e_end >= 0),
                                ("env_height", self.env_height >= 8), ("max_frames", self.max_frames >= 1),
                                ("coarse_height", self.coarse_height == 0 or 2 <= self.coarse_height <= self.env_height),
                                ("coarse_lr", self.coarse_lr > 0),
                                ("eval_pixels", self.eval_pixels >= 1), ("threads", self.threads >= 1)) if not ok]
+        bad += self.shading_errors()
         if bad:
             raise ConfigError(f"PBRStageConfig: out of range: {', '.join(bad)} ({self})")
 
@@ -182,7 +204,7 @@ def _frames(graph, bundle, cfg: PBRStageConfig) -> list[_FrameData]:
     rs = RasterSettings(threads=cfg.threads)
     static = graph._static_part().detach()
     shadow = graph.shadow_static()  # the static part plus the completed facades (core.stages.occluders)
-    ts = TraceSettings(leaf_size=16, t_min=cfg.shadow_t_min_m)
+    ts = cfg.trace_settings()
     static_tracer = GaussianTracer.from_gaussians(shadow, ts) if shadow.num else None
     out = []
     with torch.no_grad():
@@ -350,9 +372,8 @@ def fit_lighting(graph, bundle, out_dir: str | Path, cfg: PBRStageConfig | None 
             p = p + torch.nn.functional.interpolate(coarse.permute(2, 0, 1)[None], size=(h, 2 * h), mode="bilinear",
                                                     align_corners=False)[0].permute(1, 2, 0)
         env.param = hold.hold(p) if hold is not None else p
-    ps = PBRSettings(backend="torch", rays_per_pixel=cfg.rays_per_pixel, exposure=m.ldr_exposure,
-                     gamma=m.ldr_gamma, threads=cfg.threads, seed=cfg.seed, indirect_bounces=cfg.indirect_bounces,
-                     normal_offset=cfg.normal_offset_m)
+    ps = cfg.pbr_settings(rays_per_pixel=cfg.rays_per_pixel, exposure=m.ldr_exposure, gamma=m.ldr_gamma,
+                          threads=cfg.threads, seed=cfg.seed)
     gen = torch.Generator().manual_seed(cfg.seed)
     eval_idx = []
     for f in frames:
