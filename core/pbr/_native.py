@@ -71,7 +71,7 @@ def _declare(lib: ctypes.CDLL) -> None:
     lib.pi_cache_free.restype = None
     lib.pi_trace.argtypes = [p, p, p, p, p, i32, p, p, p, i64, f32, f32, i32, p, p]
     lib.pi_trace.restype = None
-    lib.pi_eval.argtypes = [p, p, p, p, p, p, f32, i64, p, p]
+    lib.pi_eval.argtypes = [p, p, p, p, p, p, f32, i32, i64, p, p]
     lib.pi_eval.restype = None
     lib.pi_env_eval.argtypes = [i32, i32, p, p, p, f32, i32, p, i64, p, p]
     lib.pi_env_eval.restype = None

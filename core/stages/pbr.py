@@ -48,6 +48,7 @@ from core.io.images import write_png
 from core.lighting.prior import LightingSettings, estimate_lighting, numpy_visibility
 from core.lighting.sky_evidence import SkyEvidence, SkyEvidenceSettings, observed_sky
 from core.numerics import LOG_RADIANCE_FLOOR
+from core.pbr.brdf import DIFFUSE_MODELS
 from core.pbr.envmap import EnvironmentMap, resample
 from core.pbr.render import PBRSettings, render_pbr
 from core.pbr.visibility import GaussianTracer, TraceSettings
@@ -70,13 +71,17 @@ class StageShading:
     indirect_bounces: int = 2
     """Approximate diffuse bounces of the PBR pass (:attr:`core.pbr.render.PBRSettings.indirect_bounces`;
     0 = direct light only, the paper)."""
+    diffuse: str = "burley"
+    """The BRDF's diffuse lobe of the stage's PBR pass (:attr:`core.pbr.render.PBRSettings.diffuse`;
+    the one a relight renders with, :attr:`core.render.scenario.Scenario.diffuse`)."""
 
     def shading_errors(self) -> list[str]:
         """Names of the out-of-range shading fields."""
         b = self.indirect_bounces
         return [n for n, ok in (("shadow_t_min_m", 0 <= self.shadow_t_min_m <= 100),
                                 ("normal_offset_m", 0 <= self.normal_offset_m <= 10),
-                                ("indirect_bounces", isinstance(b, int) and not isinstance(b, bool) and 0 <= b <= 16))
+                                ("indirect_bounces", isinstance(b, int) and not isinstance(b, bool) and 0 <= b <= 16),
+                                ("diffuse", self.diffuse in DIFFUSE_MODELS))
                 if not ok]
 
     def trace_settings(self) -> TraceSettings:
@@ -86,7 +91,7 @@ class StageShading:
     def pbr_settings(self, **kw) -> PBRSettings:
         """The stage's (differentiable, torch) PBR pass; ``kw``: the other :class:`PBRSettings` fields."""
         return PBRSettings(backend="torch", normal_offset=self.normal_offset_m, indirect_bounces=self.indirect_bounces,
-                           **kw)
+                           diffuse=self.diffuse, **kw)
 
 
 @dataclass(frozen=True)

@@ -1,5 +1,6 @@
 // The paper's BRDF in float32 (twin of core.pbr.brdf): Cook-Torrance with GGX D, Schlick-Smith
-// visibility and Schlick Fresnel plus a Lambert lobe; sampling by the mixture of GGX VNDF
+// visibility and Schlick Fresnel plus a Lambert lobe (or, with burley, Burley's 2015 diffuse with
+// retro-reflection, core.pbr.brdf.burley_diffuse_factor); sampling by the mixture of GGX VNDF
 // (Heitz 2018) and a cosine lobe, and the mixture's pdf. Unit vectors; directions point away from
 // the surface.
 
@@ -19,12 +20,14 @@ struct Material {
     float rough, metal, spec;  // clamped to [0, 1]; spec = microfacet scale
     float alpha, k;            // GGX alpha = max(R^2, alpha_min), Schlick-Smith k = (R+1)^2/8
     float f0[3];
+    int burley;                // 1: the diffuse lobe is Burley's (retro-reflection), 0: Lambert
 };
 
 inline float clamp01(float x) { return x < 0.f ? 0.f : (x > 1.f ? 1.f : x); }
 
-inline Material make_material(const float* a, float r, float m, float spec) {
+inline Material make_material(const float* a, float r, float m, float spec, int burley = 0) {
     Material mt;
+    mt.burley = burley;
     r = clamp01(r);
     m = clamp01(m);
     for (int c = 0; c < 3; ++c) {
@@ -61,6 +64,12 @@ inline void brdf_eval(const Material& mt, V3 n, V3 wi, V3 wo, float out[3]) {
     float x = 1.f - oh, x2 = x * x, x5 = x2 * x2 * x;
     float dv = d * vis * mt.spec;
     float diff = (1.f - mt.metal) * kInvPi;
+    if (mt.burley) {  // Burley 2015: (1 - Fi/2)(1 - Fo/2) + Rr (Fi + Fo + Fi Fo (Rr - 1)), Rr = 2 R (wo.h)^2
+        float a = 1.f - std::min(nwi, 1.f), b = 1.f - std::min(nwo, 1.f);
+        float fi = a * a * a * a * a, fo = b * b * b * b * b;
+        float rr = 2.f * mt.rough * oh * oh;
+        diff *= (1.f - 0.5f * fi) * (1.f - 0.5f * fo) + rr * (fi + fo + fi * fo * (rr - 1.f));
+    }
     for (int ch = 0; ch < 3; ++ch) {
         float fr = mt.f0[ch] + (1.f - mt.f0[ch]) * x5;
         out[ch] = diff * mt.albedo[ch] + dv * fr;

@@ -54,10 +54,10 @@ def test_brdf_and_pdf_match_the_torch_twin():
     a = torch.rand(m, 3, generator=g, dtype=D64)
     r = torch.rand(m, 1, generator=g, dtype=D64)
     mm = torch.rand(m, 1, generator=g, dtype=D64)
-    for spec in (1.0, 0.0):
-        f_t = cook_torrance(n, wi, wo, a, r, mm, spec)
+    for spec, diffuse in ((1.0, "lambert"), (0.0, "lambert"), (1.0, "burley"), (0.0, "burley")):
+        f_t = cook_torrance(n, wi, wo, a, r, mm, spec, diffuse)
         p_t = pdf_brdf(n, wi, wo, a, r, mm, spec)[:, 0]
-        f_c, p_c = eval_brdf(n, wi, wo, a, r, mm, spec)
+        f_c, p_c = eval_brdf(n, wi, wo, a, r, mm, spec, diffuse)
         np.testing.assert_allclose(f_c, f_t.numpy(), rtol=2e-4, atol=1e-5)
         np.testing.assert_allclose(p_c, p_t.numpy(), rtol=2e-4, atol=1e-5)
 
@@ -156,11 +156,11 @@ def _points(p=6):
     return pts, n, wo, alb, rough, metal
 
 
-@pytest.mark.parametrize("strategy", ["env", "mis", "brdf", "mis_material_split", "mis_roulette"])
+@pytest.mark.parametrize("strategy", ["env", "mis", "brdf", "mis_material_split", "mis_roulette", "mis_burley"])
 def test_same_expectation_as_the_torch_estimator_with_visibility(strategy, city_native):
     """z-test of the kernel's mean against estimate_reflected's (visibility through Gaussians);
     the kernel's per-point MIS split (``mis_min_brdf``) and shadow-ray roulette estimate the same
-    integral."""
+    integral, and so does the Burley diffuse lobe in both."""
     pts, n, wo, alb, rough, metal = _points()
     pts = pts + torch.tensor([0.0, 0.0, 0.5], dtype=D64)
     cloud = _cloud(200, seed=4)
@@ -168,15 +168,21 @@ def test_same_expectation_as_the_torch_estimator_with_visibility(strategy, city_
     ne, nb = {"env": (1024, 0), "brdf": (0, 1024)}.get(strategy, (512, 512))
     split = 0.125 if strategy == "mis_material_split" else 0.0
     roulette = 1.0 if strategy == "mis_roulette" else 0.0
+    diffuse = "burley" if strategy == "mis_burley" else "lambert"
     ests = np.stack([integrate(pts, n, wo, alb, rough, metal, city_native, [tr], n_env=ne, n_brdf=nb,
-                               normal_offset=0.01, seed=s, mis_min_brdf=split, roulette=roulette).radiance
+                               normal_offset=0.01, seed=s, mis_min_brdf=split, roulette=roulette,
+                               diffuse=diffuse).radiance
                      for s in range(24)]).astype(np.float64)
     strategy = "mis" if strategy.startswith("mis") else strategy
     env64 = EnvironmentMap.from_file(CITY, rotation_deg=30.0, dtype=D64)
     gt = _gen(5)
     et = torch.stack([estimate_reflected(pts, n, wo, alb, rough, metal, env64, n_rays=1024, strategy=strategy,
-                                         visibility=tr, generator=gt, normal_offset=0.01)
+                                         visibility=tr, generator=gt, normal_offset=0.01, diffuse=diffuse)
                       for _ in range(8)]).numpy()
+    if diffuse == "burley":  # the lobe changed what is estimated (grazing points 4 and 5)
+        lam = estimate_reflected(pts, n, wo, alb, rough, metal, env64, n_rays=1024, strategy=strategy,
+                                 visibility=tr, generator=_gen(5), normal_offset=0.01).numpy()
+        assert not np.allclose(lam, et.mean(0), rtol=0.02)
     z = (ests.mean(0) - et.mean(0)) / np.sqrt(ests.var(0, ddof=1) / 24 + et.var(0, ddof=1) / 8 + 1e-12)
     assert np.abs(z).max() < 4.0, z
 
@@ -198,6 +204,12 @@ def test_local_lights_match_direct_lighting_exactly_and_culling_changes_nothing(
         outs[cull] = res
         np.testing.assert_allclose(res.radiance, ref, rtol=2e-3, atol=1e-5)
     np.testing.assert_allclose(outs[True].radiance, outs[False].radiance, rtol=1e-6, atol=1e-7)
+    ref_b = direct_lighting(pts, n, wo, alb, rough, metal, lights, visibility=tr, normal_offset=0.01,
+                            diffuse="burley").numpy()
+    res_b = integrate(pts, n, wo, alb, rough, metal, black, [tr], lights, n_env=1, n_brdf=0, normal_offset=0.01,
+                      diffuse="burley")
+    np.testing.assert_allclose(res_b.radiance, ref_b, rtol=2e-3, atol=1e-5)
+    assert not np.allclose(res_b.radiance, ref, rtol=1e-3)
     assert outs[True].counters["light_evals"] < outs[False].counters["light_evals"]
     # the scene's Gaussians in three BVHs, the last an edited object's traced from t_min_objects:
     # the integrator's light rays are the twin's product of the three tracers
