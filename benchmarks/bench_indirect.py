@@ -7,9 +7,10 @@ built (``core.stages.occluders``: the session-start walls are one layer, the obs
 backed, continued from whatever column ends a side), and how the pbr and joint stages trace
 shadows (``old``: 0.01 m / 0.02 m, before they traced as a relight does; ``cons``: the relight's
 0.5 m / 0.1 m), and the diffuse lobe of the stages and the evaluation's renders
-(``core.pbr.brdf``: ``lambert``, the paper's, or ``burley``). ``base`` is the code at the start of
-the indirect-light change, ``cur`` the current defaults, ``lambert`` the current defaults with the
-paper's Lambert lobe (the code before the Burley change).
+and masking term (``core.pbr.brdf``: ``lambert`` / ``schlick``, the paper's, or ``burley`` /
+``smith``, the principled BSDF's). ``base`` is the code at the start of the indirect-light change,
+``cur`` the current defaults, ``lambert`` the current defaults with the paper's BRDF (the code
+before the Burley change), ``burley`` with Burley's lobe and the paper's masking.
 
     python benchmarks/bench_indirect.py make SEED_RUN OUT_DIR --scene BUNDLE --variants base,cur
     python benchmarks/bench_indirect.py table LABEL:ROLE:VARIANT=RUN ... --out benchmarks/results/indirect.json
@@ -38,13 +39,14 @@ from benchmarks.eval_pipeline import machine  # noqa: E402
 
 OLD_OCCLUDERS = {"layers": 1, "fill_observed": False, "wall_tolerance_m": 1000.0}
 SHADOWS = {"old": (0.01, 0.02), "cons": (0.5, 0.1)}
-#: name -> (indirect bounces, occluder overrides, stage shadows, diffuse lobe)
+#: name -> (indirect bounces, occluder overrides, stage shadows, diffuse lobe, masking term)
 VARIANTS = {
-    "base": (0, OLD_OCCLUDERS, "old", "lambert"),
-    "cur": (2, {}, "cons", "burley"),
-    "lambert": (2, {}, "cons", "lambert"),
-    "indirect_old_occluders": (2, OLD_OCCLUDERS, "cons", "lambert"),
-    "cur_old_stage_shadows": (2, {}, "old", "lambert"),
+    "base": (0, OLD_OCCLUDERS, "old", "lambert", "schlick"),
+    "cur": (2, {}, "cons", "burley", "smith"),
+    "lambert": (2, {}, "cons", "lambert", "schlick"),
+    "burley": (2, {}, "cons", "burley", "schlick"),
+    "indirect_old_occluders": (2, OLD_OCCLUDERS, "cons", "lambert", "schlick"),
+    "cur_old_stage_shadows": (2, {}, "old", "lambert", "schlick"),
 }
 KEYS = ("relight_psnr", "relight_ssim", "rerender_psnr", "nvs_psnr", "sun_error_deg")
 
@@ -60,7 +62,7 @@ def make(seed: Path, out: Path, scene: str, name: str) -> Path:
     from core.stages.volume import _views
     from core.synth.evaluate import EvalSettings, evaluate_run
 
-    bounces, occ, shadows, diffuse = VARIANTS[name]
+    bounces, occ, shadows, diffuse, masking = VARIANTS[name]
     dst = out / name
     if dst.exists():
         shutil.rmtree(dst)
@@ -85,11 +87,13 @@ def make(seed: Path, out: Path, scene: str, name: str) -> Path:
     sets = []
     for st in ("pbr", "joint"):
         sets += ["--set", f"{st}.indirect_bounces={bounces}", "--set", f"{st}.shadow_t_min_m={t_min}",
-                 "--set", f"{st}.normal_offset_m={offset}", "--set", f"{st}.diffuse={diffuse}"]
+                 "--set", f"{st}.normal_offset_m={offset}", "--set", f"{st}.diffuse={diffuse}",
+                 "--set", f"{st}.masking={masking}"]
     subprocess.run([sys.executable, "-m", "core", "reconstruct", "--scene", scene, "--profile", "quick", "--stages",
                     "pbr,joint", "--resume", "--out", str(dst), "--quiet", *sets], check=True, cwd=REPO)
     torch.set_num_threads(2)
-    evaluate_run(dst, settings=EvalSettings(flip=False, indirect_bounces=bounces, diffuse=diffuse))
+    evaluate_run(dst, settings=EvalSettings(flip=False, indirect_bounces=bounces, diffuse=diffuse,
+                                                               masking=masking))
     return dst
 
 
@@ -110,7 +114,8 @@ def table(items: list[str], out: Path, note: str) -> dict:
             k: round(sum(r[k] for r in rs) / len(rs), 4) for k in KEYS if all(r[k] is not None for r in rs)}
         means[role][variant]["streets"] = [st for st, v in rows.items() if v["role"] == role and variant in v]
     res = {"machine": machine(), "profile": "quick", "variants": {k: {"indirect_bounces": v[0], "occluders": v[1] or
-                                                                     "defaults", "stage_shadows": SHADOWS[v[2]], "diffuse": v[3]}
+                                                                     "defaults", "stage_shadows": SHADOWS[v[2]], "diffuse": v[3],
+                                                                     "masking": v[4]}
                                                                  for k, v in VARIANTS.items()},
            "streets": rows, "means": means, "note": note}
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -49,7 +49,7 @@ struct Params {
     float exposure, inv_gamma;
     float normal_offset;
     float specular;
-    int burley;                 // 1: Burley's diffuse lobe (brdf.hpp), 0: Lambert (the paper)
+    int model;                  // BRDF model bits (brdf.hpp: Burley's diffuse, exact Smith G); 0 = the paper
     uint64_t seed;
     int cull_lights;
     // cache
@@ -101,7 +101,7 @@ void shade_point(int64_t i, const PointIn& in, const Env& env, const Bvh* bv_in,
     V3 n = normalize(load3(in.nrm + 3 * i));
     V3 wo = normalize(load3(in.wo + 3 * i));
     V3 x = load3(in.pos + 3 * i);
-    Material mt = make_material(in.albedo + 3 * i, in.rough[i], in.metal[i], P.specular, P.burley);
+    Material mt = make_material(in.albedo + 3 * i, in.rough[i], in.metal[i], P.specular, P.model);
     double acc[3] = {0, 0, 0};
     int used_samples = 0;
     bool degenerate = !(dot(n, n) > 0.5f);
@@ -466,9 +466,9 @@ void pi_trace(const void* const* bvh_nodes, const int64_t* bvh_num, const float*
 
 // Deterministic pieces for the twin tests: f [m, 3], pdf_mix [m], env lookup [m, 3], env pdf [m].
 void pi_eval(const float* n, const float* wi, const float* wo, const float* albedo, const float* rough,
-             const float* metal, float specular, int32_t burley, int64_t m, float* f_out, float* pdf_out) {
+             const float* metal, float specular, int32_t model, int64_t m, float* f_out, float* pdf_out) {
     for (int64_t i = 0; i < m; ++i) {
-        Material mt = make_material(albedo + 3 * i, rough[i], metal[i], specular, burley);
+        Material mt = make_material(albedo + 3 * i, rough[i], metal[i], specular, model);
         V3 nn = normalize(load3(n + 3 * i)), a = normalize(load3(wi + 3 * i)), b = normalize(load3(wo + 3 * i));
         brdf_eval(mt, nn, a, b, f_out + 3 * i);
         if (pdf_out) pdf_out[i] = dot(nn, nn) > 0.5f ? pdf_mix(mt, spec_prob(mt, dot(nn, b)), nn, a, b) : 0.f;
@@ -510,7 +510,7 @@ void pi_env_sample(int32_t H, int32_t W, const float* tex, const float* alias, c
 //   seed, mis_min_brdf (> 0: per-point env/BRDF split),
 //   roulette (> 0: shadow-ray Russian roulette threshold, x the point's running mean contribution),
 //   cache_check (> 0: probability of re-tracing a cache hit, unbiased correction),
-//   burley (1: Burley's diffuse lobe, 0: Lambert)
+//   model (BRDF model bits, brdf.hpp: 1 Burley's diffuse, 2 exact Smith G; 0 = the paper)
 // bvh_nodes, bvh_num, bvh_soa, bvh_npad, bvh_tmin (nullable): [nbvh] each, bvh_tmin the minimum
 //   ray distance of each BVH (metres); bvh_tmin_own (nullable): [nbvh], the minimum distance of
 //   each BVH for the points that lie on an edited object (on_object [P] uint8, nullable)
@@ -549,7 +549,7 @@ void pi_render(const float* pos, const float* nrm, const float* wo, const float*
     P.mis_min_brdf = (float)fparams[11];
     P.roulette = (float)fparams[12];
     P.cache_check = (float)fparams[13];
-    P.burley = fparams[14] > 0.5 ? 1 : 0;
+    P.model = (int)fparams[14];
     Bvh bv[kMaxBvhs];
     for (int k = 0; k < nb; ++k)
         bv[k] = {static_cast<const Node8*>(bvh_nodes[k]), bvh_num[k], bvh_soa[k], bvh_npad[k],

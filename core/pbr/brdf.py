@@ -50,7 +50,14 @@ trained on it), and a street is seen at grazing angles: Mitsuba's principled dif
 rough road (R 0.84) seen 80 deg from its normal 1.18-1.38x the Lambert lobe under a 42 deg sun
 from the side or behind (``tests/core/pbr/test_pbr_brdf.py`` checks this lobe against Mitsuba's).
 Its energy exceeds 1 for rough white surfaces at grazing angles (1.18 at R = 1, 75 deg: Burley's
-retro-reflection is not energy-bounded).
+retro-reflection is not energy-bounded). ``masking="smith"`` replaces the paper's Schlick-Smith
+``G`` (``k = (R+1)^2/8``, Karis's remapping for analytic lights, which darkens smooth surfaces at
+grazing angles) by the exact separable Smith ``G1(w) = 2 c / (c + sqrt(a^2 + (1 - a^2) c^2))``
+of GGX (``c = n.w``, ``a = alpha``), as Mitsuba's principled BSDF evaluates it:
+``G / (4 (n.wi)(n.wo)) = 1 / ((ci + sqrt(a^2 + (1-a^2) ci^2)) (co + sqrt(...)))``, finite at
+grazing angles. With it a smooth metal paint (R 0.3) matches Mitsuba's evaluation exactly; with
+the paper's term it came out 2.4x darker at a 75 deg view and 7x at 85 deg in the mirror
+direction (glass, R 0.08: 2x and 6x).
 
 Sampling
     :func:`sample_ggx_vndf` draws the half vector from GGX's distribution of visible normals
@@ -74,6 +81,9 @@ from core.numerics import EPS_NORM_SQ, EPS_PDF, GGX_ALPHA_MIN, safe_div, safe_no
 INV_PI = 1.0 / math.pi
 #: The diffuse lobes: ``"lambert"`` (the paper's) and ``"burley"`` (see the module docstring).
 DIFFUSE_MODELS = ("lambert", "burley")
+#: The microfacet masking-shadowing terms: ``"schlick"`` (the paper's Schlick-Smith, k = (R+1)^2/8)
+#: and ``"smith"`` (the exact separable Smith G of GGX; see the module docstring).
+MASKING_MODELS = ("schlick", "smith")
 #: Dielectric reflectance at normal incidence used by the paper (index of refraction ~1.5).
 F0_DIELECTRIC = 0.04
 
@@ -139,7 +149,7 @@ def burley_diffuse_factor(nwi: torch.Tensor, nwo: torch.Tensor, ohw: torch.Tenso
 
 def cook_torrance(n: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor, albedo: torch.Tensor,
                   roughness: torch.Tensor, metallic: torch.Tensor, specular=1.0,
-                  diffuse: str = "lambert") -> torch.Tensor:
+                  diffuse: str = "lambert", masking: str = "schlick") -> torch.Tensor:
     """The paper's BRDF ``f(wi, wo)`` ``[..., 3]`` in 1/sr (see the module docstring).
 
     Args:
@@ -147,9 +157,12 @@ def cook_torrance(n: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor, albedo: t
         albedo: ``[..., 3]``; roughness, metallic: ``[..., 1]``.
         specular: scale of the microfacet term (number or ``[..., 1]``), 1 = the paper.
         diffuse: the diffuse lobe, one of :data:`DIFFUSE_MODELS` (``"lambert"`` = the paper).
+        masking: the masking-shadowing term, one of :data:`MASKING_MODELS` (``"schlick"`` = the paper).
     """
     if diffuse not in DIFFUSE_MODELS:
         raise ConfigError(f"diffuse: expected one of {', '.join(DIFFUSE_MODELS)}, got {diffuse!r}")
+    if masking not in MASKING_MODELS:
+        raise ConfigError(f"masking: expected one of {', '.join(MASKING_MODELS)}, got {masking!r}")
     n = safe_normalize(n)
     wi = safe_normalize(wi)
     wo = safe_normalize(wo)
@@ -166,7 +179,11 @@ def cook_torrance(n: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor, albedo: t
     d = ggx_d(n, h, alpha)
     ci = nwi.clamp(0.0, 1.0)
     co = nwo.clamp(0.0, 1.0)
-    vis = 1.0 / (4.0 * (ci * (1.0 - k) + k) * (co * (1.0 - k) + k))  # G / (4 nwi nwo)
+    if masking == "smith":
+        a2 = alpha * alpha
+        vis = 1.0 / ((ci + torch.sqrt(a2 + (1.0 - a2) * ci * ci)) * (co + torch.sqrt(a2 + (1.0 - a2) * co * co)))
+    else:
+        vis = 1.0 / (4.0 * (ci * (1.0 - k) + k) * (co * (1.0 - k) + k))  # G / (4 nwi nwo)
     ohw = dot(wo, h)
     fr = schlick_fresnel(f0(a, m), ohw)
     spec = d * vis * fr

@@ -47,7 +47,7 @@ import torch
 from core.camera import Camera, require_one_camera
 from core.errors import ConfigError
 from core.pbr import _native
-from core.pbr.brdf import DIFFUSE_MODELS
+from core.pbr.brdf import DIFFUSE_MODELS, MASKING_MODELS
 from core.pbr.envmap import EnvironmentMap
 
 _f32 = np.float32
@@ -157,23 +157,26 @@ def trace_simd(tracers, origins, dirs, t_max=None, *, threads: int = 0) -> tuple
 
 
 def eval_brdf(n, wi, wo, albedo, roughness, metallic, specular: float = 1.0,
-              diffuse: str = "lambert") -> tuple[np.ndarray, np.ndarray]:
+              diffuse: str = "lambert", masking: str = "schlick") -> tuple[np.ndarray, np.ndarray]:
     """Kernel BRDF values ``[m, 3]`` and lobe-mixture pdfs ``[m]`` (for the twin tests);
-    ``diffuse``: :data:`core.pbr.brdf.DIFFUSE_MODELS`."""
-    burley = _burley_flag(diffuse)
+    ``diffuse``, ``masking``: :data:`core.pbr.brdf.DIFFUSE_MODELS`, :data:`core.pbr.brdf.MASKING_MODELS`."""
+    model = _model_bits(diffuse, masking)
     n, wi, wo, a = (_np(x).reshape(-1, 3) for x in (n, wi, wo, albedo))
     r, m = _np(roughness, 1), _np(metallic, 1)
     f = np.empty_like(n)
     pdf = np.empty(len(n), np.float32)
     _native.lib().pi_eval(n.ctypes.data, wi.ctypes.data, wo.ctypes.data, a.ctypes.data, r.ctypes.data,
-                          m.ctypes.data, float(specular), burley, len(n), f.ctypes.data, pdf.ctypes.data)
+                          m.ctypes.data, float(specular), model, len(n), f.ctypes.data, pdf.ctypes.data)
     return f, pdf
 
 
-def _burley_flag(diffuse: str) -> int:
+def _model_bits(diffuse: str, masking: str) -> int:
+    """The kernel's BRDF model bits (``native/brdf.hpp``): 1 Burley's diffuse, 2 exact Smith G."""
     if diffuse not in DIFFUSE_MODELS:
         raise ConfigError(f"diffuse: expected one of {', '.join(DIFFUSE_MODELS)}, got {diffuse!r}")
-    return int(diffuse == "burley")
+    if masking not in MASKING_MODELS:
+        raise ConfigError(f"masking: expected one of {', '.join(MASKING_MODELS)}, got {masking!r}")
+    return int(diffuse == "burley") | (2 if masking == "smith" else 0)
 
 
 class VisibilityCache:
@@ -232,7 +235,7 @@ def integrate(points, normals, wo, albedo, roughness, metallic, env: NativeEnv, 
               cache: VisibilityCache | None = None, camera: Camera | None = None, threads: int = 0,
               ids=None, cache_bvhs: int | None = None, mis_min_brdf: float = 0.0,
               roulette: float = 0.0, cache_check: float = 0.0, on_object=None,
-              diffuse: str = "lambert") -> IntegratorOutput:
+              diffuse: str = "lambert", masking: str = "schlick") -> IntegratorOutput:
     """Run the fused kernel on ``P`` shading points (world frame, metres; see the module
     docstring). ``normals`` are used as given (face them toward the viewer first); ``lights`` is
     a :class:`core.pbr.lights.LightSet` or None; ``tracers`` up to three
@@ -259,10 +262,11 @@ def integrate(points, normals, wo, albedo, roughness, metallic, env: NativeEnv, 
     whose traced value differs from the cached one (taken at another point of the cell) by more
     than 0.25 is retired and traced at every later lookup, so cells crossed by a shadow edge stop
     using the cache (0: cached values are used as they are, shadows blurred to the cell size);
-    ``diffuse``: the diffuse lobe, :data:`core.pbr.brdf.DIFFUSE_MODELS`."""
+    ``diffuse``, ``masking``: the diffuse lobe and the microfacet masking term
+    (:data:`core.pbr.brdf.DIFFUSE_MODELS`, :data:`core.pbr.brdf.MASKING_MODELS`)."""
     from core.pbr.visibility import TraceSettings, default_threads
 
-    burley = _burley_flag(diffuse)
+    model = _model_bits(diffuse, masking)
     if camera is not None:
         require_one_camera(camera)
     elif cache is not None:
@@ -312,7 +316,7 @@ def integrate(points, normals, wo, albedo, roughness, metallic, env: NativeEnv, 
     fparams = np.array([adapt_tol, exposure, 1.0 / gamma, normal_offset, specular,
                         cache.cell_px if cache else 0.0, 1.0 / fx, ts.t_min, ts.early_stop, ts.max_alpha,
                         float(int(seed) % (2 ** 52)), float(mis_min_brdf), float(roulette),
-                        float(cache_check), float(burley)], np.float64)
+                        float(cache_check), float(model)], np.float64)
     out = np.zeros((p, 3), np.float32)
     used = np.zeros(p, np.int32)
     counters = np.zeros(_native.NUM_COUNTERS, np.int64)

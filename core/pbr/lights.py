@@ -203,13 +203,14 @@ def light_geometry(x: torch.Tensor, lights: LightSet, l: int):
 
 def direct_lighting(points, normals, wo, albedo, roughness, metallic, lights: LightSet, *,
                     visibility: Visibility | None = None, cull: bool = True, specular=1.0,
-                    normal_offset: float = 0.0, stats: dict | None = None, diffuse: str = "lambert") -> torch.Tensor:
+                    normal_offset: float = 0.0, stats: dict | None = None, diffuse: str = "lambert",
+                    masking: str = "schlick") -> torch.Tensor:
     """Sum over lights of ``E_l V f max(n.wl, 0)``: ``[P, 3]`` (see the module docstring).
 
     Shapes as :func:`core.pbr.mis.estimate_reflected`. ``visibility(origins, dirs, t_max)``
     casts one deterministic shadow ray per (point, light) from ``points + normal_offset * n``
-    toward the light, ending at the light (``t_max = d``). ``diffuse``: the BRDF's diffuse lobe
-    (:func:`core.pbr.brdf.cook_torrance`). ``stats`` receives ``pairs`` and
+    toward the light, ending at the light (``t_max = d``). ``diffuse``, ``masking``: the BRDF's
+    diffuse lobe and masking term (:func:`core.pbr.brdf.cook_torrance`). ``stats`` receives ``pairs`` and
     ``evaluated`` counts (evaluated < pairs when culling skips work).
     """
     points, normals, wo, albedo, roughness, metallic = check_shading_inputs(
@@ -238,7 +239,7 @@ def direct_lighting(points, normals, wo, albedo, roughness, metallic, lights: Li
             idx = torch.arange(points.shape[0])
         st["evaluated"] += int(idx.numel())
         sp = spec[idx] if spec.dim() == 2 else spec
-        f = cook_torrance(n_u[idx], wl[idx], wo_u[idx], albedo[idx], roughness[idx], metallic[idx], sp, diffuse)
+        f = cook_torrance(n_u[idx], wl[idx], wo_u[idx], albedo[idx], roughness[idx], metallic[idx], sp, diffuse, masking)
         cos = dot(n_u[idx], wl[idx]).clamp_min(0.0)
         if visibility is None:
             vis = torch.ones(idx.shape[0], dtype=dt)

@@ -42,7 +42,7 @@ import torch
 
 from core.errors import ConfigError, ShapeError
 from core.numerics import require_finite, safe_normalize
-from core.pbr.brdf import DIFFUSE_MODELS, cook_torrance, dot, pdf_brdf, sample_brdf
+from core.pbr.brdf import DIFFUSE_MODELS, MASKING_MODELS, cook_torrance, dot, pdf_brdf, sample_brdf
 from core.pbr.envmap import EnvironmentMap
 
 Visibility = Callable[..., torch.Tensor]
@@ -93,9 +93,11 @@ def _visible(visibility, origins, dirs, active, dtype):
 def estimate_reflected(points, normals, wo, albedo, roughness, metallic, env: EnvironmentMap, *,
                        n_rays: int = 64, strategy: str = "env", visibility: Visibility | None = None,
                        generator: torch.Generator | None = None, specular=1.0, normal_offset: float = 0.0,
-                       chunk_points: int = 4096, stats: dict | None = None, diffuse: str = "lambert") -> torch.Tensor:
+                       chunk_points: int = 4096, stats: dict | None = None, diffuse: str = "lambert",
+                       masking: str = "schlick") -> torch.Tensor:
     """Estimate ``L_r`` ``[P, 3]`` (see the module docstring). ``specular``: number or ``[P, 1]``,
-    ``diffuse``: the diffuse lobe (see :func:`core.pbr.brdf.cook_torrance`). ``stats`` (optional dict) receives counts of
+    ``diffuse``, ``masking``: the BRDF's diffuse lobe and masking term (see
+    :func:`core.pbr.brdf.cook_torrance`). ``stats`` (optional dict) receives counts of
     samples and shadow rays.
 
     Raises:
@@ -106,6 +108,8 @@ def estimate_reflected(points, normals, wo, albedo, roughness, metallic, env: En
         raise ConfigError(f"strategy: must be one of {STRATEGIES}, got {strategy!r}")
     if diffuse not in DIFFUSE_MODELS:
         raise ConfigError(f"diffuse: must be one of {DIFFUSE_MODELS}, got {diffuse!r}")
+    if masking not in MASKING_MODELS:
+        raise ConfigError(f"masking: must be one of {MASKING_MODELS}, got {masking!r}")
     if isinstance(n_rays, bool) or not isinstance(n_rays, int) or n_rays < 1:
         raise ConfigError(f"n_rays: must be an int >= 1, got {n_rays!r}")
     if isinstance(chunk_points, bool) or not isinstance(chunk_points, int) or chunk_points < 1:
@@ -130,7 +134,7 @@ def estimate_reflected(points, normals, wo, albedo, roughness, metallic, env: En
         sp = spec[b:e] if spec.dim() == 2 else spec
         outs.append(_estimate_chunk(points[b:e], normals[b:e], wo[b:e], albedo[b:e], roughness[b:e],
                                     metallic[b:e], env, n_env, n_brdf, visibility, generator, sp,
-                                    float(normal_offset), st, diffuse))
+                                    float(normal_offset), st, diffuse, masking))
     if not outs:
         return torch.zeros(0, 3, dtype=env.dtype)
     out = torch.cat(outs, 0)
@@ -139,7 +143,7 @@ def estimate_reflected(points, normals, wo, albedo, roughness, metallic, env: En
 
 
 def _estimate_chunk(x, n, wo, albedo, rough, metal, env, n_env, n_brdf, visibility, gen, spec, offset, st,
-                    diffuse="lambert"):
+                    diffuse="lambert", masking="schlick"):
     p = x.shape[0]
     dt = env.dtype
     n_u = safe_normalize(n.to(dt))
@@ -165,7 +169,7 @@ def _estimate_chunk(x, n, wo, albedo, rough, metal, env, n_env, n_brdf, visibili
     for kind, k, dirs, pdf_own, rad in parts:
         nk, wok, ak, rk, mk = (expand(t, k) for t in (n_u, wo_u, albedo, rough, metal))
         sp_k = expand(spec, k) if spec.dim() == 2 else spec
-        f = cook_torrance(nk, dirs, wok, ak, rk, mk, sp_k, diffuse)
+        f = cook_torrance(nk, dirs, wok, ak, rk, mk, sp_k, diffuse, masking)
         cos = dot(nk, dirs).clamp_min(0.0)
         with torch.no_grad():
             if n_env and n_brdf:

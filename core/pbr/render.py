@@ -66,7 +66,7 @@ from core.gaussians import Gaussians
 from core.io.exr import write_exr
 from core.io.video import write_mp4
 from core.numerics import require_finite
-from core.pbr.brdf import DIFFUSE_MODELS, sample_cosine
+from core.pbr.brdf import DIFFUSE_MODELS, MASKING_MODELS, sample_cosine
 from core.pbr.envmap import EnvironmentMap, luminance
 from core.pbr.integrator import NativeEnv, VisibilityCache, integrate
 from core.pbr.lights import direct_lighting, lights_to_world
@@ -102,6 +102,10 @@ class PBRSettings:
     """The BRDF's diffuse lobe (:data:`core.pbr.brdf.DIFFUSE_MODELS`): ``"lambert"`` (the paper) or
     ``"burley"`` (Burley's 2015 diffuse of the principled BSDF, whose base colour the recovered
     albedo is: :mod:`core.pbr.brdf`)."""
+    masking: str = "schlick"
+    """The BRDF's microfacet masking-shadowing term (:data:`core.pbr.brdf.MASKING_MODELS`):
+    ``"schlick"`` (the paper's Schlick-Smith) or ``"smith"`` (exact Smith, as the principled BSDF:
+    :mod:`core.pbr.brdf`)."""
     shadows: bool = True
     """Trace shadow rays through the Gaussians; False treats every light sample as visible (no
     BVH is built and no visibility cache is used)."""
@@ -181,6 +185,7 @@ class PBRSettings:
             "gamma": is_num(self.gamma, 0.0, 100.0, True),
             "specular": is_num(self.specular, 0.0, 1.0),
             "diffuse": self.diffuse in DIFFUSE_MODELS,
+            "masking": self.masking in MASKING_MODELS,
             "normal_offset": is_num(self.normal_offset, 0.0, 10.0),
             "sky_opacity": is_num(self.sky_opacity, 0.0, 1.0),
             "adaptive_tol": is_num(self.adaptive_tol, 0.0, 1.0, True),
@@ -443,7 +448,8 @@ def render_pbr(gbuf, camera, env: EnvironmentMap, *, settings: PBRSettings | Non
         bg = luminance(env.lookup(si.view_dirs[sel]).detach()) * (1.0 - si.opacity[sel, 0]) if s.adaptive else None
         res = integrate(si.points[sel], si.normals[sel], si.wo[sel], si.albedo[sel], si.roughness[sel],
                         si.metallic[sel], nenv, tr, lights, n_env=n_env, n_brdf=n_brdf, specular=s.specular,
-                        diffuse=s.diffuse, normal_offset=s.normal_offset, seed=s.seed * 1000003 + frame_index,
+                        diffuse=s.diffuse, masking=s.masking, normal_offset=s.normal_offset,
+                        seed=s.seed * 1000003 + frame_index,
                         batch=s.adaptive_batch if s.adaptive else (1 << 30), adapt_tol=s.adaptive_tol if s.adaptive else 0.0,
                         adapt_min_batches=s.adaptive_min_batches, exposure=s.exposure, gamma=s.gamma,
                         weight=si.opacity[sel, 0], background_lum=bg, depth=si.depth[sel, 0],
@@ -466,13 +472,13 @@ def render_pbr(gbuf, camera, env: EnvironmentMap, *, settings: PBRSettings | Non
             lr_sel = estimate_reflected(si.points[sel], si.normals[sel], si.wo[sel], si.albedo[sel],
                                         si.roughness[sel], si.metallic[sel], env, n_rays=s.rays_per_pixel,
                                         strategy=s.sampling, visibility=vis if tr else None, generator=generator,
-                                        specular=s.specular, diffuse=s.diffuse, normal_offset=s.normal_offset,
-                                        stats=st).to(dt)
+                                        specular=s.specular, diffuse=s.diffuse, masking=s.masking,
+                                        normal_offset=s.normal_offset, stats=st).to(dt)
             if lights is not None and len(lights):
                 lr_sel = lr_sel + direct_lighting(si.points[sel], si.normals[sel], si.wo[sel], si.albedo[sel],
                                                   si.roughness[sel], si.metallic[sel], lights,
                                                   visibility=vis if tr else None, cull=s.cull_lights,
-                                                  specular=s.specular, diffuse=s.diffuse,
+                                                  specular=s.specular, diffuse=s.diffuse, masking=s.masking,
                                                   normal_offset=s.normal_offset, stats=st).to(dt)
         samples[shade] = s.rays_per_pixel
         counters.update(st)

@@ -48,7 +48,7 @@ from core.io.images import write_png
 from core.lighting.prior import LightingSettings, estimate_lighting, numpy_visibility
 from core.lighting.sky_evidence import SkyEvidence, SkyEvidenceSettings, observed_sky
 from core.numerics import LOG_RADIANCE_FLOOR
-from core.pbr.brdf import DIFFUSE_MODELS
+from core.pbr.brdf import DIFFUSE_MODELS, MASKING_MODELS
 from core.pbr.envmap import EnvironmentMap, resample
 from core.pbr.render import PBRSettings, render_pbr
 from core.pbr.visibility import GaussianTracer, TraceSettings
@@ -74,6 +74,9 @@ class StageShading:
     diffuse: str = "burley"
     """The BRDF's diffuse lobe of the stage's PBR pass (:attr:`core.pbr.render.PBRSettings.diffuse`;
     the one a relight renders with, :attr:`core.render.scenario.Scenario.diffuse`)."""
+    masking: str = "smith"
+    """The BRDF's masking term of the stage's PBR pass (:attr:`core.pbr.render.PBRSettings.masking`;
+    the one a relight renders with, :attr:`core.render.scenario.Scenario.masking`)."""
 
     def shading_errors(self) -> list[str]:
         """Names of the out-of-range shading fields."""
@@ -81,7 +84,8 @@ class StageShading:
         return [n for n, ok in (("shadow_t_min_m", 0 <= self.shadow_t_min_m <= 100),
                                 ("normal_offset_m", 0 <= self.normal_offset_m <= 10),
                                 ("indirect_bounces", isinstance(b, int) and not isinstance(b, bool) and 0 <= b <= 16),
-                                ("diffuse", self.diffuse in DIFFUSE_MODELS))
+                                ("diffuse", self.diffuse in DIFFUSE_MODELS),
+                                ("masking", self.masking in MASKING_MODELS))
                 if not ok]
 
     def trace_settings(self) -> TraceSettings:
@@ -91,7 +95,7 @@ class StageShading:
     def pbr_settings(self, **kw) -> PBRSettings:
         """The stage's (differentiable, torch) PBR pass; ``kw``: the other :class:`PBRSettings` fields."""
         return PBRSettings(backend="torch", normal_offset=self.normal_offset_m, indirect_bounces=self.indirect_bounces,
-                           diffuse=self.diffuse, **kw)
+                           diffuse=self.diffuse, masking=self.masking, **kw)
 
 
 @dataclass(frozen=True)

@@ -69,6 +69,8 @@ class EvalSettings:
     (:attr:`core.pbr.render.PBRSettings.indirect_bounces`; 0 = direct light only, the paper)."""
     diffuse: str = "burley"
     """The BRDF's diffuse lobe of the PBR renders (:attr:`core.render.scenario.Scenario.diffuse`)."""
+    masking: str = "smith"
+    """The BRDF's masking term of the PBR renders (:attr:`core.render.scenario.Scenario.masking`)."""
     object_shadow_t_min_m: float = 0.05
     """The same for objects an edit placed (:attr:`core.render.scenario.Scenario.object_shadow_t_min_m`;
     the evaluation renders no edits, so only a request that passes edits sees it)."""
@@ -166,7 +168,7 @@ def evaluate_run(run_dir: str | Path, bundle=None, settings: EvalSettings | None
                       base_exposure=ex, gamma=gamma, rays_per_pixel=s.rays_per_pixel, denoiser=s.denoiser,
                       denoiser_fallback=None, normal_offset_m=s.normal_offset_m,
                       shadow_t_min_m=s.shadow_t_min_m, object_shadow_t_min_m=s.object_shadow_t_min_m,
-                      indirect_bounces=s.indirect_bounces, diffuse=s.diffuse,
+                      indirect_bounces=s.indirect_bounces, diffuse=s.diffuse, masking=s.masking,
                       outputs=("png",))
         with tempfile.TemporaryDirectory(prefix="brdf-eval-") as tmp:
             r = render_scenario(graph, sc, tmp)

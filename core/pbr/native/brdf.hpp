@@ -1,6 +1,7 @@
 // The paper's BRDF in float32 (twin of core.pbr.brdf): Cook-Torrance with GGX D, Schlick-Smith
 // visibility and Schlick Fresnel plus a Lambert lobe (or, with burley, Burley's 2015 diffuse with
-// retro-reflection, core.pbr.brdf.burley_diffuse_factor); sampling by the mixture of GGX VNDF
+// retro-reflection, core.pbr.brdf.burley_diffuse_factor) and, with smith, the exact Smith G in
+// place of Schlick-Smith's; sampling by the mixture of GGX VNDF
 // (Heitz 2018) and a cosine lobe, and the mixture's pdf. Unit vectors; directions point away from
 // the surface.
 
@@ -21,13 +22,18 @@ struct Material {
     float alpha, k;            // GGX alpha = max(R^2, alpha_min), Schlick-Smith k = (R+1)^2/8
     float f0[3];
     int burley;                // 1: the diffuse lobe is Burley's (retro-reflection), 0: Lambert
+    int smith;                 // 1: exact separable Smith G of GGX, 0: Schlick-Smith k (the paper)
 };
+
+// Model bits of make_material (twin of core.pbr.brdf): bit 0 Burley's diffuse, bit 1 exact Smith G.
+constexpr int kModelBurley = 1, kModelSmith = 2;
 
 inline float clamp01(float x) { return x < 0.f ? 0.f : (x > 1.f ? 1.f : x); }
 
-inline Material make_material(const float* a, float r, float m, float spec, int burley = 0) {
+inline Material make_material(const float* a, float r, float m, float spec, int model = 0) {
     Material mt;
-    mt.burley = burley;
+    mt.burley = (model & kModelBurley) ? 1 : 0;
+    mt.smith = (model & kModelSmith) ? 1 : 0;
     r = clamp01(r);
     m = clamp01(m);
     for (int c = 0; c < 3; ++c) {
@@ -59,7 +65,13 @@ inline void brdf_eval(const Material& mt, V3 n, V3 wi, V3 wo, float out[3]) {
     V3 c = cross(n, h);
     float d = ggx_d(nh, dot(c, c), mt.alpha);
     float ci = std::min(nwi, 1.f), co = std::min(nwo, 1.f);
-    float vis = 1.f / (4.f * (ci * (1.f - mt.k) + mt.k) * (co * (1.f - mt.k) + mt.k));
+    float vis;
+    if (mt.smith) {  // G / (4 nwi nwo) = 1 / ((ci + sqrt(a2 + (1 - a2) ci^2)) (co + ...))
+        float a2 = mt.alpha * mt.alpha;
+        vis = 1.f / ((ci + std::sqrt(a2 + (1.f - a2) * ci * ci)) * (co + std::sqrt(a2 + (1.f - a2) * co * co)));
+    } else {
+        vis = 1.f / (4.f * (ci * (1.f - mt.k) + mt.k) * (co * (1.f - mt.k) + mt.k));
+    }
     float oh = clamp01(dot(wo, h));
     float x = 1.f - oh, x2 = x * x, x5 = x2 * x2 * x;
     float dv = d * vis * mt.spec;

@@ -54,10 +54,12 @@ def test_brdf_and_pdf_match_the_torch_twin():
     a = torch.rand(m, 3, generator=g, dtype=D64)
     r = torch.rand(m, 1, generator=g, dtype=D64)
     mm = torch.rand(m, 1, generator=g, dtype=D64)
-    for spec, diffuse in ((1.0, "lambert"), (0.0, "lambert"), (1.0, "burley"), (0.0, "burley")):
-        f_t = cook_torrance(n, wi, wo, a, r, mm, spec, diffuse)
+    for spec, diffuse, masking in ((1.0, "lambert", "schlick"), (0.0, "lambert", "schlick"),
+                                   (1.0, "burley", "schlick"), (0.0, "burley", "schlick"),
+                                   (1.0, "lambert", "smith"), (1.0, "burley", "smith")):
+        f_t = cook_torrance(n, wi, wo, a, r, mm, spec, diffuse, masking)
         p_t = pdf_brdf(n, wi, wo, a, r, mm, spec)[:, 0]
-        f_c, p_c = eval_brdf(n, wi, wo, a, r, mm, spec, diffuse)
+        f_c, p_c = eval_brdf(n, wi, wo, a, r, mm, spec, diffuse, masking)
         np.testing.assert_allclose(f_c, f_t.numpy(), rtol=2e-4, atol=1e-5)
         np.testing.assert_allclose(p_c, p_t.numpy(), rtol=2e-4, atol=1e-5)
 
@@ -156,7 +158,8 @@ def _points(p=6):
     return pts, n, wo, alb, rough, metal
 
 
-@pytest.mark.parametrize("strategy", ["env", "mis", "brdf", "mis_material_split", "mis_roulette", "mis_burley"])
+@pytest.mark.parametrize("strategy", ["env", "mis", "brdf", "mis_material_split", "mis_roulette", "mis_burley",
+                                      "mis_principled"])
 def test_same_expectation_as_the_torch_estimator_with_visibility(strategy, city_native):
     """z-test of the kernel's mean against estimate_reflected's (visibility through Gaussians);
     the kernel's per-point MIS split (``mis_min_brdf``) and shadow-ray roulette estimate the same
@@ -168,18 +171,20 @@ def test_same_expectation_as_the_torch_estimator_with_visibility(strategy, city_
     ne, nb = {"env": (1024, 0), "brdf": (0, 1024)}.get(strategy, (512, 512))
     split = 0.125 if strategy == "mis_material_split" else 0.0
     roulette = 1.0 if strategy == "mis_roulette" else 0.0
-    diffuse = "burley" if strategy == "mis_burley" else "lambert"
+    diffuse = "burley" if strategy in ("mis_burley", "mis_principled") else "lambert"
+    masking = "smith" if strategy == "mis_principled" else "schlick"
     ests = np.stack([integrate(pts, n, wo, alb, rough, metal, city_native, [tr], n_env=ne, n_brdf=nb,
                                normal_offset=0.01, seed=s, mis_min_brdf=split, roulette=roulette,
-                               diffuse=diffuse).radiance
+                               diffuse=diffuse, masking=masking).radiance
                      for s in range(24)]).astype(np.float64)
     strategy = "mis" if strategy.startswith("mis") else strategy
     env64 = EnvironmentMap.from_file(CITY, rotation_deg=30.0, dtype=D64)
     gt = _gen(5)
     et = torch.stack([estimate_reflected(pts, n, wo, alb, rough, metal, env64, n_rays=1024, strategy=strategy,
-                                         visibility=tr, generator=gt, normal_offset=0.01, diffuse=diffuse)
+                                         visibility=tr, generator=gt, normal_offset=0.01, diffuse=diffuse,
+                                         masking=masking)
                       for _ in range(8)]).numpy()
-    if diffuse == "burley":  # the lobe changed what is estimated (grazing points 4 and 5)
+    if diffuse == "burley":  # the model changed what is estimated (grazing points 4 and 5)
         lam = estimate_reflected(pts, n, wo, alb, rough, metal, env64, n_rays=1024, strategy=strategy,
                                  visibility=tr, generator=_gen(5), normal_offset=0.01).numpy()
         assert not np.allclose(lam, et.mean(0), rtol=0.02)
