@@ -9,8 +9,10 @@ shadows (``old``: 0.01 m / 0.02 m, before they traced as a relight does; ``cons`
 0.5 m / 0.1 m), and the diffuse lobe of the stages and the evaluation's renders
 and masking term (``core.pbr.brdf``: ``lambert`` / ``schlick``, the paper's, or ``burley`` /
 ``smith``, the principled BSDF's). ``base`` is the code at the start of the indirect-light change,
-``cur`` the current defaults, ``lambert`` the current defaults with the paper's BRDF (the code
-before the Burley change), ``burley`` with Burley's lobe and the paper's masking.
+``cur`` the current defaults, ``lambert`` the current defaults with the paper's BRDF and the
+paper's opacity blend (the code before the Burley change), ``burley`` with Burley's lobe and the
+paper's masking, ``principled_blend`` the principled BRDF with the paper's blend
+(``PBRSettings.opaque_above`` 1.0: the map shows through partly opaque surfaces).
 
     python benchmarks/bench_indirect.py make SEED_RUN OUT_DIR --scene BUNDLE --variants base,cur
     python benchmarks/bench_indirect.py table LABEL:ROLE:VARIANT=RUN ... --out benchmarks/results/indirect.json
@@ -39,14 +41,16 @@ from benchmarks.eval_pipeline import machine  # noqa: E402
 
 OLD_OCCLUDERS = {"layers": 1, "fill_observed": False, "wall_tolerance_m": 1000.0}
 SHADOWS = {"old": (0.01, 0.02), "cons": (0.5, 0.1)}
-#: name -> (indirect bounces, occluder overrides, stage shadows, diffuse lobe, masking term)
+#: name -> (indirect bounces, occluder overrides, stage shadows, diffuse lobe, masking term,
+#: opaque_above: pixels at least this opaque are shaded as surfaces, 1.0 = the paper's blend)
 VARIANTS = {
-    "base": (0, OLD_OCCLUDERS, "old", "lambert", "schlick"),
-    "cur": (2, {}, "cons", "burley", "smith"),
-    "lambert": (2, {}, "cons", "lambert", "schlick"),
-    "burley": (2, {}, "cons", "burley", "schlick"),
-    "indirect_old_occluders": (2, OLD_OCCLUDERS, "cons", "lambert", "schlick"),
-    "cur_old_stage_shadows": (2, {}, "old", "lambert", "schlick"),
+    "base": (0, OLD_OCCLUDERS, "old", "lambert", "schlick", 1.0),
+    "cur": (2, {}, "cons", "burley", "smith", 0.5),
+    "lambert": (2, {}, "cons", "lambert", "schlick", 1.0),
+    "burley": (2, {}, "cons", "burley", "schlick", 1.0),
+    "principled_blend": (2, {}, "cons", "burley", "smith", 1.0),
+    "indirect_old_occluders": (2, OLD_OCCLUDERS, "cons", "lambert", "schlick", 1.0),
+    "cur_old_stage_shadows": (2, {}, "old", "lambert", "schlick", 1.0),
 }
 KEYS = ("relight_psnr", "relight_ssim", "rerender_psnr", "nvs_psnr", "sun_error_deg")
 
@@ -62,7 +66,7 @@ def make(seed: Path, out: Path, scene: str, name: str) -> Path:
     from core.stages.volume import _views
     from core.synth.evaluate import EvalSettings, evaluate_run
 
-    bounces, occ, shadows, diffuse, masking = VARIANTS[name]
+    bounces, occ, shadows, diffuse, masking, opaque = VARIANTS[name]
     dst = out / name
     if dst.exists():
         shutil.rmtree(dst)
@@ -88,12 +92,12 @@ def make(seed: Path, out: Path, scene: str, name: str) -> Path:
     for st in ("pbr", "joint"):
         sets += ["--set", f"{st}.indirect_bounces={bounces}", "--set", f"{st}.shadow_t_min_m={t_min}",
                  "--set", f"{st}.normal_offset_m={offset}", "--set", f"{st}.diffuse={diffuse}",
-                 "--set", f"{st}.masking={masking}"]
+                 "--set", f"{st}.masking={masking}", "--set", f"{st}.opaque_above={opaque}"]
     subprocess.run([sys.executable, "-m", "core", "reconstruct", "--scene", scene, "--profile", "quick", "--stages",
                     "pbr,joint", "--resume", "--out", str(dst), "--quiet", *sets], check=True, cwd=REPO)
     torch.set_num_threads(2)
     evaluate_run(dst, settings=EvalSettings(flip=False, indirect_bounces=bounces, diffuse=diffuse,
-                                                               masking=masking))
+                                                               masking=masking, opaque_above=opaque))
     return dst
 
 
@@ -115,7 +119,7 @@ def table(items: list[str], out: Path, note: str) -> dict:
         means[role][variant]["streets"] = [st for st, v in rows.items() if v["role"] == role and variant in v]
     res = {"machine": machine(), "profile": "quick", "variants": {k: {"indirect_bounces": v[0], "occluders": v[1] or
                                                                      "defaults", "stage_shadows": SHADOWS[v[2]], "diffuse": v[3],
-                                                                     "masking": v[4]}
+                                                                     "masking": v[4], "opaque_above": v[5]}
                                                                  for k, v in VARIANTS.items()},
            "streets": rows, "means": means, "note": note}
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -189,6 +189,9 @@ class Scenario:
     development scene), relit against Mitsuba under three held-back maps: lambert 22.50 / 19.09 /
     16.65 dB (sunset / forest / courtyard), burley 22.76 / 19.35 / 16.64; under the capture's own
     map the non-sky radiance came out 0.90 of Mitsuba's with lambert, 0.97 with burley."""
+    opaque_above: float = 0.5
+    """Pixels at least this opaque are surfaces, shaded without the map showing through
+    (:attr:`core.pbr.render.PBRSettings.opaque_above`)."""
     masking: str = "smith"
     """The BRDF's masking-shadowing term (:attr:`core.pbr.render.PBRSettings.masking`): the exact
     Smith term, as the principled BSDF. Chosen on the default scene's quick reconstruction (with
@@ -613,7 +616,7 @@ def render_scenario(graph, scenario: Scenario, out_dir: str | Path, *,
                                                t_min_objects=scenario.object_shadow_t_min_m),
                            reuse_visibility=len(scenario.views) > 1, adaptive=scenario.adaptive_rays,
                            indirect_bounces=scenario.indirect_bounces, diffuse=scenario.diffuse,
-                           masking=scenario.masking)
+                           masking=scenario.masking, opaque_above=scenario.opaque_above)
     with ClipHook(reuse_across_clips=scenario.reuse_visibility_across_requests) as hook:
         res = render_clip(g, env, list(scenario.views), out_dir, settings=settings, lights=lights,
                           outputs=list(scenario.outputs), denoiser=scenario.denoiser,

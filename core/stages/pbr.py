@@ -74,6 +74,9 @@ class StageShading:
     diffuse: str = "burley"
     """The BRDF's diffuse lobe of the stage's PBR pass (:attr:`core.pbr.render.PBRSettings.diffuse`;
     the one a relight renders with, :attr:`core.render.scenario.Scenario.diffuse`)."""
+    opaque_above: float = 0.5
+    """Surface pixels of the stage's PBR pass (:attr:`core.pbr.render.PBRSettings.opaque_above`;
+    as a relight renders them)."""
     masking: str = "smith"
     """The BRDF's masking term of the stage's PBR pass (:attr:`core.pbr.render.PBRSettings.masking`;
     the one a relight renders with, :attr:`core.render.scenario.Scenario.masking`)."""
@@ -85,7 +88,8 @@ class StageShading:
                                 ("normal_offset_m", 0 <= self.normal_offset_m <= 10),
                                 ("indirect_bounces", isinstance(b, int) and not isinstance(b, bool) and 0 <= b <= 16),
                                 ("diffuse", self.diffuse in DIFFUSE_MODELS),
-                                ("masking", self.masking in MASKING_MODELS))
+                                ("masking", self.masking in MASKING_MODELS),
+                                ("opaque_above", 0 < self.opaque_above <= 1))
                 if not ok]
 
     def trace_settings(self) -> TraceSettings:
@@ -95,7 +99,7 @@ class StageShading:
     def pbr_settings(self, **kw) -> PBRSettings:
         """The stage's (differentiable, torch) PBR pass; ``kw``: the other :class:`PBRSettings` fields."""
         return PBRSettings(backend="torch", normal_offset=self.normal_offset_m, indirect_bounces=self.indirect_bounces,
-                           diffuse=self.diffuse, masking=self.masking, **kw)
+                           diffuse=self.diffuse, masking=self.masking, opaque_above=self.opaque_above, **kw)
 
 
 @dataclass(frozen=True)

@@ -71,6 +71,8 @@ class EvalSettings:
     """The BRDF's diffuse lobe of the PBR renders (:attr:`core.render.scenario.Scenario.diffuse`)."""
     masking: str = "smith"
     """The BRDF's masking term of the PBR renders (:attr:`core.render.scenario.Scenario.masking`)."""
+    opaque_above: float = 0.5
+    """Surface pixels of the PBR renders (:attr:`core.render.scenario.Scenario.opaque_above`)."""
     object_shadow_t_min_m: float = 0.05
     """The same for objects an edit placed (:attr:`core.render.scenario.Scenario.object_shadow_t_min_m`;
     the evaluation renders no edits, so only a request that passes edits sees it)."""
@@ -168,7 +170,7 @@ def evaluate_run(run_dir: str | Path, bundle=None, settings: EvalSettings | None
                       base_exposure=ex, gamma=gamma, rays_per_pixel=s.rays_per_pixel, denoiser=s.denoiser,
                       denoiser_fallback=None, normal_offset_m=s.normal_offset_m,
                       shadow_t_min_m=s.shadow_t_min_m, object_shadow_t_min_m=s.object_shadow_t_min_m,
-                      indirect_bounces=s.indirect_bounces, diffuse=s.diffuse, masking=s.masking,
+                      indirect_bounces=s.indirect_bounces, diffuse=s.diffuse, masking=s.masking, opaque_above=s.opaque_above,
                       outputs=("png",))
         with tempfile.TemporaryDirectory(prefix="brdf-eval-") as tmp:
             r = render_scenario(graph, sc, tmp)

@@ -270,3 +270,34 @@ def test_settings_validation_names_the_field():
             PBRSettings(**kw)
     assert PBRSettings(rays_per_pixel=7, sampling="mis").split == (4, 3)
     assert PBRSettings(rays_per_pixel=7, sampling="env").split == (7, 0)
+
+
+@pytest.mark.parametrize("backend", ["native", "torch"])
+def test_opaque_above_shades_partly_opaque_surfaces_without_the_map_showing_through(backend):
+    """A floor 0.95 opaque seen from above under a map whose lower hemisphere is bright: the
+    paper's blend (opaque_above 1.0) adds 5% of the floor of the map seen through the surface;
+    at 0.5 the pixel is the surface alone, as if fully opaque; a half-covered pixel (0.4) keeps
+    the blend either way."""
+    gb, cam = _gbuf((0.0, 0.0, 1.0), n=3)
+    gb = {k: v.clone() for k, v in gb.items()}
+    cover = torch.tensor([1.0, 0.95, 0.4]).reshape(1, 3, 1)
+    for k in ("opacity", "depth", "normal", "albedo", "roughness", "metallic"):
+        gb[k] = gb[k] * cover  # accumulated sums, as the rasterizer composites them
+    h, w = 16, 32
+    tex = torch.full((h, w, 3), 0.2)
+    tex[h // 2:] = 50.0  # the map's lower hemisphere: a sunlit floor
+    env = EnvironmentMap(tex)
+    ref = {}
+    for opaque in (1.0, 0.5):
+        s = PBRSettings(rays_per_pixel=8192, backend=backend, threads=1, shadows=False, opaque_above=opaque)
+        ref[opaque] = render_pbr(gb, cam, env, settings=s, generator=torch.Generator().manual_seed(0)).hdr[0]
+    lr_full = ref[0.5][0]  # the fully opaque pixel: L_r alone under both settings
+    np.testing.assert_allclose(ref[1.0][0].numpy(), lr_full.numpy(), rtol=1e-6)
+    # 0.95 opaque: the surface alone at 0.5 (the same expectation as the opaque pixel) ...
+    np.testing.assert_allclose(ref[0.5][1].numpy(), lr_full.numpy(), rtol=0.1)
+    # ... the paper's blend shows 5% of the map's floor (radiance 50) through it
+    assert float(ref[1.0][1].mean()) > float(ref[0.5][1].mean()) + 0.05 * 50 * 0.8
+    # below the threshold both blend the same way
+    np.testing.assert_allclose(ref[1.0][2].numpy(), ref[0.5][2].numpy(), rtol=1e-6)
+    with pytest.raises(ConfigError, match="opaque_above"):
+        PBRSettings(opaque_above=0.0)
