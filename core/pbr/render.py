@@ -18,8 +18,10 @@ renders direct light only, but in a street 18-22% of the light a camera sees has
 
 ``E(d)`` is the map's radiance along the camera ray (the paper's ``E(w_o)``). ``L_r`` is weighted
 by ``O`` because the G-buffers are accumulated sums: a pixel half covered by a surface blends half
-surface, half sky; for opaque surfaces (``O = 1``) this is the paper's formula exactly. A zero
-normal (nothing composited) reflects nothing.
+surface, half sky; for opaque surfaces (``O = 1``) this is the paper's formula exactly. With
+:attr:`PBRSettings.opaque_above` < 1 a pixel at least that opaque counts as a surface (weight 1,
+no map behind it): reconstructed surfaces are rarely exactly opaque. A zero normal (nothing
+composited) reflects nothing.
 
 Backends (:attr:`PBRSettings.backend`)
     ``"native"``: the fused C++ integrator (:mod:`core.pbr.integrator`): fast, not
@@ -271,7 +273,8 @@ class ShadingInputs:
 @dataclass
 class PBRResult:
     """One rendered frame. ``hdr``, ``ldr``, ``lr``: ``[H, W, 3]`` torch (``hdr`` = C_pbr,
-    ``lr`` = O L_r); ``samples`` ``[H, W]`` int (samples spent per pixel); ``gbuffers``: the
+    ``lr`` = O L_r, or L_r where O >= ``opaque_above``); ``samples`` ``[H, W]`` int (samples
+    spent per pixel); ``gbuffers``: the
     rasterizer's layers as expected values (``depth`` in metres, 0 on sky; ``normal`` unit, facing
     the camera; ``opacity``); ``timings`` (seconds) and ``counters``. With ``pixels`` given, the
     image tensors are ``[K, 3]`` for those flat pixel indices."""
