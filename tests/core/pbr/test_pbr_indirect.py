@@ -140,3 +140,12 @@ def test_the_pass_adds_light_under_a_roof_only():
     # (the open ground near the roof's edge still sees it low on its horizon: a little bounce)
     assert bool((add[under] > 0).all()) and float(add[open_].abs().max()) < 0.2 * float(add[under].mean())
     assert float(add[gx > 4.0].abs().max()) < 0.02 * float(add[under].mean())
+    # the same roof as an edited object (a tracer built with objects=True): it still blocks the
+    # direct light, but the bounce does not see it (an inserted car's shadowed side adds nothing)
+    obj = GaussianTracer.from_gaussians(roof, objects=True)
+    on_obj = render_pbr(gb, cam, env, settings=PBRSettings(**{**base.__dict__, "indirect_bounces": 2,
+                                                               "indirect_rays": 256}),
+                        tracers=(obj,), generator=torch.Generator().manual_seed(0))
+    off_obj = render_pbr(gb, cam, env, settings=base, tracers=(obj,), generator=torch.Generator().manual_seed(0))
+    assert float((off.hdr - off_obj.hdr).abs().max()) < 0.05 * float(off.hdr.mean())  # blocks the light alike
+    np.testing.assert_allclose(on_obj.hdr.numpy(), off_obj.hdr.numpy(), atol=1e-9)
