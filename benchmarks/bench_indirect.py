@@ -33,6 +33,7 @@ import shutil
 import subprocess
 import sys
 from pathlib import Path
+from typing import NamedTuple
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
@@ -41,16 +42,31 @@ from benchmarks.eval_pipeline import machine  # noqa: E402
 
 OLD_OCCLUDERS = {"layers": 1, "fill_observed": False, "wall_tolerance_m": 1000.0}
 SHADOWS = {"old": (0.01, 0.02), "cons": (0.5, 0.1)}
-#: name -> (indirect bounces, occluder overrides, stage shadows, diffuse lobe, masking term,
-#: opaque_above: pixels at least this opaque are shaded as surfaces, 1.0 = the paper's blend)
+class Variant(NamedTuple):
+    """One row of the benchmark: what the pbr and joint stages and the evaluation run with."""
+
+    bounces: int
+    """``indirect_bounces``."""
+    occluders: dict
+    """``OccluderSettings`` overrides of the rebuilt occluders ({} = the defaults)."""
+    shadows: str
+    """Key of :data:`SHADOWS`: the stages' shadow t_min and normal offset."""
+    diffuse: str
+    """The BRDF's diffuse lobe."""
+    masking: str
+    """The BRDF's masking term."""
+    opaque_above: float
+    """Pixels at least this opaque are shaded as surfaces (1.0 = the paper's blend)."""
+
+
 VARIANTS = {
-    "base": (0, OLD_OCCLUDERS, "old", "lambert", "schlick", 1.0),
-    "cur": (2, {}, "cons", "burley", "smith", 0.5),
-    "lambert": (2, {}, "cons", "lambert", "schlick", 1.0),
-    "burley": (2, {}, "cons", "burley", "schlick", 1.0),
-    "principled_blend": (2, {}, "cons", "burley", "smith", 1.0),
-    "indirect_old_occluders": (2, OLD_OCCLUDERS, "cons", "lambert", "schlick", 1.0),
-    "cur_old_stage_shadows": (2, {}, "old", "lambert", "schlick", 1.0),
+    "base": Variant(0, OLD_OCCLUDERS, "old", "lambert", "schlick", 1.0),
+    "cur": Variant(2, {}, "cons", "burley", "smith", 0.5),
+    "lambert": Variant(2, {}, "cons", "lambert", "schlick", 1.0),
+    "burley": Variant(2, {}, "cons", "burley", "schlick", 1.0),
+    "principled_blend": Variant(2, {}, "cons", "burley", "smith", 1.0),
+    "indirect_old_occluders": Variant(2, OLD_OCCLUDERS, "cons", "lambert", "schlick", 1.0),
+    "cur_old_stage_shadows": Variant(2, {}, "old", "lambert", "schlick", 1.0),
 }
 KEYS = ("relight_psnr", "relight_ssim", "rerender_psnr", "nvs_psnr", "sun_error_deg")
 
@@ -117,10 +133,10 @@ def table(items: list[str], out: Path, note: str) -> dict:
         means.setdefault(role, {})[variant] = {
             k: round(sum(r[k] for r in rs) / len(rs), 4) for k in KEYS if all(r[k] is not None for r in rs)}
         means[role][variant]["streets"] = [st for st, v in rows.items() if v["role"] == role and variant in v]
-    res = {"machine": machine(), "profile": "quick", "variants": {k: {"indirect_bounces": v[0], "occluders": v[1] or
-                                                                     "defaults", "stage_shadows": SHADOWS[v[2]], "diffuse": v[3],
-                                                                     "masking": v[4], "opaque_above": v[5]}
-                                                                 for k, v in VARIANTS.items()},
+    res = {"machine": machine(), "profile": "quick",
+           "variants": {k: {"indirect_bounces": v.bounces, "occluders": v.occluders or "defaults",
+                            "stage_shadows": SHADOWS[v.shadows], "diffuse": v.diffuse, "masking": v.masking,
+                            "opaque_above": v.opaque_above} for k, v in VARIANTS.items()},
            "streets": rows, "means": means, "note": note}
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(res, indent=1))

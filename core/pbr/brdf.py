@@ -134,6 +134,15 @@ def schlick_fresnel(f0_: torch.Tensor, cos_theta: torch.Tensor) -> torch.Tensor:
     return f0_ + (1.0 - f0_) * (c2 * c2 * c)
 
 
+def check_brdf_model(diffuse: str, masking: str) -> None:
+    """ConfigError naming ``diffuse`` / ``masking`` unless they are in :data:`DIFFUSE_MODELS` /
+    :data:`MASKING_MODELS`."""
+    if diffuse not in DIFFUSE_MODELS:
+        raise ConfigError(f"diffuse: expected one of {', '.join(DIFFUSE_MODELS)}, got {diffuse!r}")
+    if masking not in MASKING_MODELS:
+        raise ConfigError(f"masking: expected one of {', '.join(MASKING_MODELS)}, got {masking!r}")
+
+
 def burley_diffuse_factor(nwi: torch.Tensor, nwo: torch.Tensor, ohw: torch.Tensor,
                           roughness: torch.Tensor) -> torch.Tensor:
     """Burley's 2015 diffuse over Lambert's, ``[..., 1]``: ``(1 - Fi/2)(1 - Fo/2) + Rr (Fi + Fo +
@@ -159,10 +168,7 @@ def cook_torrance(n: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor, albedo: t
         diffuse: the diffuse lobe, one of :data:`DIFFUSE_MODELS` (``"lambert"`` = the paper).
         masking: the masking-shadowing term, one of :data:`MASKING_MODELS` (``"schlick"`` = the paper).
     """
-    if diffuse not in DIFFUSE_MODELS:
-        raise ConfigError(f"diffuse: expected one of {', '.join(DIFFUSE_MODELS)}, got {diffuse!r}")
-    if masking not in MASKING_MODELS:
-        raise ConfigError(f"masking: expected one of {', '.join(MASKING_MODELS)}, got {masking!r}")
+    check_brdf_model(diffuse, masking)
     n = safe_normalize(n)
     wi = safe_normalize(wi)
     wo = safe_normalize(wo)

@@ -47,7 +47,7 @@ import torch
 from core.camera import Camera, require_one_camera
 from core.errors import ConfigError
 from core.pbr import _native
-from core.pbr.brdf import DIFFUSE_MODELS, MASKING_MODELS
+from core.pbr.brdf import check_brdf_model
 from core.pbr.envmap import EnvironmentMap
 
 _f32 = np.float32
@@ -172,10 +172,7 @@ def eval_brdf(n, wi, wo, albedo, roughness, metallic, specular: float = 1.0,
 
 def _model_bits(diffuse: str, masking: str) -> int:
     """The kernel's BRDF model bits (``native/brdf.hpp``): 1 Burley's diffuse, 2 exact Smith G."""
-    if diffuse not in DIFFUSE_MODELS:
-        raise ConfigError(f"diffuse: expected one of {', '.join(DIFFUSE_MODELS)}, got {diffuse!r}")
-    if masking not in MASKING_MODELS:
-        raise ConfigError(f"masking: expected one of {', '.join(MASKING_MODELS)}, got {masking!r}")
+    check_brdf_model(diffuse, masking)
     return int(diffuse == "burley") | (2 if masking == "smith" else 0)
 
 

@@ -239,7 +239,8 @@ def direct_lighting(points, normals, wo, albedo, roughness, metallic, lights: Li
             idx = torch.arange(points.shape[0])
         st["evaluated"] += int(idx.numel())
         sp = spec[idx] if spec.dim() == 2 else spec
-        f = cook_torrance(n_u[idx], wl[idx], wo_u[idx], albedo[idx], roughness[idx], metallic[idx], sp, diffuse, masking)
+        f = cook_torrance(n_u[idx], wl[idx], wo_u[idx], albedo[idx], roughness[idx], metallic[idx], sp, diffuse,
+                          masking)
         cos = dot(n_u[idx], wl[idx]).clamp_min(0.0)
         if visibility is None:
             vis = torch.ones(idx.shape[0], dtype=dt)

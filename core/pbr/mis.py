@@ -42,7 +42,7 @@ import torch
 
 from core.errors import ConfigError, ShapeError
 from core.numerics import require_finite, safe_normalize
-from core.pbr.brdf import DIFFUSE_MODELS, MASKING_MODELS, cook_torrance, dot, pdf_brdf, sample_brdf
+from core.pbr.brdf import check_brdf_model, cook_torrance, dot, pdf_brdf, sample_brdf
 from core.pbr.envmap import EnvironmentMap
 
 Visibility = Callable[..., torch.Tensor]
@@ -106,10 +106,7 @@ def estimate_reflected(points, normals, wo, albedo, roughness, metallic, env: En
     """
     if strategy not in STRATEGIES:
         raise ConfigError(f"strategy: must be one of {STRATEGIES}, got {strategy!r}")
-    if diffuse not in DIFFUSE_MODELS:
-        raise ConfigError(f"diffuse: must be one of {DIFFUSE_MODELS}, got {diffuse!r}")
-    if masking not in MASKING_MODELS:
-        raise ConfigError(f"masking: must be one of {MASKING_MODELS}, got {masking!r}")
+    check_brdf_model(diffuse, masking)
     if isinstance(n_rays, bool) or not isinstance(n_rays, int) or n_rays < 1:
         raise ConfigError(f"n_rays: must be an int >= 1, got {n_rays!r}")
     if isinstance(chunk_points, bool) or not isinstance(chunk_points, int) or chunk_points < 1:

@@ -37,7 +37,7 @@ from core.io.envmap_file import read_envmap
 from core.io.hdri import hdri_names
 from core.pbr.envmap import EnvironmentMap
 from core.pbr.lights import PointLight, SpotLight
-from core.pbr.render import ClipHook, PBRSettings
+from core.pbr.render import PRODUCT_DIFFUSE, PRODUCT_MASKING, PRODUCT_OPAQUE_ABOVE, ClipHook, PBRSettings
 from core.pbr.visibility import TraceSettings
 from core.relight import ObjectEdit, View
 from core.render.exposure import AutoExposure
@@ -183,16 +183,16 @@ class Scenario:
     indirect_bounces: int = 2
     """Indirect light of the PBR pass: the approximate diffuse bounces
     (:attr:`core.pbr.render.PBRSettings.indirect_bounces`; 0 = direct light only, the paper)."""
-    diffuse: str = "burley"
+    diffuse: str = PRODUCT_DIFFUSE
     """The BRDF's diffuse lobe (:attr:`core.pbr.render.PBRSettings.diffuse`): Burley's, whose
     base colour the recovered albedo is. Chosen on the default scene's quick reconstruction (the
     development scene), relit against Mitsuba under three held-back maps: lambert 22.50 / 19.09 /
     16.65 dB (sunset / forest / courtyard), burley 22.76 / 19.35 / 16.64; under the capture's own
     map the non-sky radiance came out 0.90 of Mitsuba's with lambert, 0.97 with burley."""
-    opaque_above: float = 0.5
+    opaque_above: float = PRODUCT_OPAQUE_ABOVE
     """Pixels at least this opaque are surfaces, shaded without the map showing through
     (:attr:`core.pbr.render.PBRSettings.opaque_above`)."""
-    masking: str = "smith"
+    masking: str = PRODUCT_MASKING
     """The BRDF's masking-shadowing term (:attr:`core.pbr.render.PBRSettings.masking`): the exact
     Smith term, as the principled BSDF. Chosen on the default scene's quick reconstruction (with
     Burley's lobe), same reconstruction rendered both ways: relit 22.75 / 19.35 / 16.64 dB

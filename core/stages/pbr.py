@@ -50,7 +50,7 @@ from core.lighting.sky_evidence import SkyEvidence, SkyEvidenceSettings, observe
 from core.numerics import LOG_RADIANCE_FLOOR
 from core.pbr.brdf import DIFFUSE_MODELS, MASKING_MODELS
 from core.pbr.envmap import EnvironmentMap, resample
-from core.pbr.render import PBRSettings, render_pbr
+from core.pbr.render import PRODUCT_DIFFUSE, PRODUCT_MASKING, PRODUCT_OPAQUE_ABOVE, PBRSettings, render_pbr
 from core.pbr.visibility import GaussianTracer, TraceSettings
 from core.raster import RasterSettings, rasterize_gaussians
 from core.stages.early_stop import stalled
@@ -71,13 +71,13 @@ class StageShading:
     indirect_bounces: int = 2
     """Approximate diffuse bounces of the PBR pass (:attr:`core.pbr.render.PBRSettings.indirect_bounces`;
     0 = direct light only, the paper)."""
-    diffuse: str = "burley"
+    diffuse: str = PRODUCT_DIFFUSE
     """The BRDF's diffuse lobe of the stage's PBR pass (:attr:`core.pbr.render.PBRSettings.diffuse`;
     the one a relight renders with, :attr:`core.render.scenario.Scenario.diffuse`)."""
-    opaque_above: float = 0.5
+    opaque_above: float = PRODUCT_OPAQUE_ABOVE
     """Surface pixels of the stage's PBR pass (:attr:`core.pbr.render.PBRSettings.opaque_above`;
     as a relight renders them)."""
-    masking: str = "smith"
+    masking: str = PRODUCT_MASKING
     """The BRDF's masking term of the stage's PBR pass (:attr:`core.pbr.render.PBRSettings.masking`;
     the one a relight renders with, :attr:`core.render.scenario.Scenario.masking`)."""
 

@@ -39,6 +39,7 @@ from core.lighting.prior import brightest_direction, sun_direction_error_deg
 from core.metrics import angular_error_deg, psnr, si_psnr, ssim
 from core.numerics import OPACITY_EPS
 from core.pbr.envmap import resample
+from core.pbr.render import PRODUCT_DIFFUSE, PRODUCT_MASKING, PRODUCT_OPAQUE_ABOVE
 from core.raster import RasterSettings, rasterize_gaussians
 from core.render.scenario import Scenario, render_scenario, views_from_frames
 from core.stages.chain import RunDir
@@ -67,11 +68,11 @@ class EvalSettings:
     indirect_bounces: int = 2
     """Indirect light of the PBR renders: the approximate diffuse bounces
     (:attr:`core.pbr.render.PBRSettings.indirect_bounces`; 0 = direct light only, the paper)."""
-    diffuse: str = "burley"
+    diffuse: str = PRODUCT_DIFFUSE
     """The BRDF's diffuse lobe of the PBR renders (:attr:`core.render.scenario.Scenario.diffuse`)."""
-    masking: str = "smith"
+    masking: str = PRODUCT_MASKING
     """The BRDF's masking term of the PBR renders (:attr:`core.render.scenario.Scenario.masking`)."""
-    opaque_above: float = 0.5
+    opaque_above: float = PRODUCT_OPAQUE_ABOVE
     """Surface pixels of the PBR renders (:attr:`core.render.scenario.Scenario.opaque_above`)."""
     object_shadow_t_min_m: float = 0.05
     """The same for objects an edit placed (:attr:`core.render.scenario.Scenario.object_shadow_t_min_m`;
@@ -170,7 +171,8 @@ def evaluate_run(run_dir: str | Path, bundle=None, settings: EvalSettings | None
                       base_exposure=ex, gamma=gamma, rays_per_pixel=s.rays_per_pixel, denoiser=s.denoiser,
                       denoiser_fallback=None, normal_offset_m=s.normal_offset_m,
                       shadow_t_min_m=s.shadow_t_min_m, object_shadow_t_min_m=s.object_shadow_t_min_m,
-                      indirect_bounces=s.indirect_bounces, diffuse=s.diffuse, masking=s.masking, opaque_above=s.opaque_above,
+                      indirect_bounces=s.indirect_bounces, diffuse=s.diffuse, masking=s.masking,
+                      opaque_above=s.opaque_above,
                       outputs=("png",))
         with tempfile.TemporaryDirectory(prefix="brdf-eval-") as tmp:
             r = render_scenario(graph, sc, tmp)
