@@ -328,8 +328,28 @@ def test_dashboard_operations_in_chromium(settings, tmp_path, browser, tiny_scen
     def css(sel):
         return browser.find_elements(By.CSS_SELECTOR, sel)
 
+    def db_writable() -> bool:
+        """No process holds the SQLite database's write lock (a horse stopped inside a write
+        transaction would hold it for as long as it is stopped: the gateway's cancel then failed
+        with 'database is locked' after its 30 s busy timeout, once in CI)."""
+        import sqlite3
+
+        if not st.db_url.startswith("sqlite"):
+            return True
+        # mode=rw: a wrong path is an error, not a new empty database that is always writable
+        con = sqlite3.connect(f"file:{st.db_url.split('///', 1)[1]}?mode=rw", uri=True, timeout=0.2)
+        try:
+            con.execute("BEGIN IMMEDIATE")
+            con.rollback()
+            return True
+        except sqlite3.OperationalError:
+            return False
+        finally:
+            con.close()
+
     def hold_when_running(job_id, timeout=60):
-        """SIGSTOP the work horse once the API reports the job running; returns its pid."""
+        """SIGSTOP the work horse once the API reports the job running, at a moment it holds no
+        database write lock; returns its pid."""
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
             kids = w.descendants()
@@ -337,7 +357,7 @@ def test_dashboard_operations_in_chromium(settings, tmp_path, browser, tiny_scen
                 time.sleep(0.01)
                 continue
             os.kill(kids[0], signal.SIGSTOP)
-            if c.get(f"/jobs/{job_id}").json()["state"] == "running":
+            if c.get(f"/jobs/{job_id}").json()["state"] == "running" and db_writable():
                 return kids[0]
             os.kill(kids[0], signal.SIGCONT)
             time.sleep(0.02)
