@@ -9,7 +9,7 @@ the sun's colour) with the reconstruction's albedo within 5% of the truth.
 This module completes the walls for shadow rays only (the Gaussians it returns are never
 rasterized, so no novel view changes): each column of the reconstructed facades (a ``cell_m``
 grid cell in x, y holding opaque Gaussians whose normals are near horizontal) is continued
-upward from its highest Gaussian in ``step_m`` steps to ``max_height_m``, and a step is kept
+upward from its highest Gaussian, ``inset_m`` behind the facade (inside the building), in ``step_m`` steps to ``max_height_m``, and a step is kept
 while no training frame has *seen through it*: a point that projects into a frame on a sky
 pixel, or in front of the depth that frame's reconstruction renders there, is free space, and
 the column stops below it (walls have no holes). Where the capture saw a building's roof line
@@ -65,7 +65,20 @@ class OccluderSettings:
     opacity: float = 0.95
     """Opacity of each completed Gaussian."""
     depth_margin_m: float = 0.5
-    """A point counts as seen through when it lies this far in front of a frame's rendered depth."""
+    """A point counts as seen through when it lies this far in front of a frame's rendered depth.
+    (A margin growing with depth, 8% or 15% of it, kept more of the upper facades but cost the
+    default scene's relight 0.7-1.1 dB: walls too tall darken the street under an overcast sky.)"""
+    grow_behind: bool = True
+    """Grow each column ``inset_m`` behind the facade surface, inside the building, instead of at
+    its grid cell's centre. A cell's centre lies up to half a cell in front of the surface, in the
+    street's free space: seen at a grazing angle from down the street that is 0.5 m or more in
+    front of the facade's rendered depth, so a frame "saw through" it and the column stopped at
+    the top of what was seen (the default scene's right facade ended at 5-6 m over 6 m of its
+    13.8 m building, and the road beside an inserted car stood in the sun where Mitsuba has the
+    building's shadow). Measured on the default scene's quick reconstruction (volume2 to joint
+    re-run, ``benchmarks/bench_insertion.py``, every test frame): inserted car's cast-shadow IoU
+    under city 36 deg 0.677 -> 0.712 (mean of five sunny maps 0.800 -> 0.808), relight
+    20.56 -> 20.54 dB, re-render 18.91 -> 19.07 dB."""
     fill_observed: bool = True
     """Also back each column's observed part (its lowest to its highest facade Gaussian) with a
     wall of opaque disks ``inset_m`` behind the surface: a reconstructed facade is a single layer
@@ -104,8 +117,9 @@ class OccluderSettings:
             raise ConfigError(f"opacity: must be in (0, 1), got {self.opacity!r}")
         if not (isinstance(self.layers, int) and not isinstance(self.layers, bool) and 1 <= self.layers <= 8):
             raise ConfigError(f"layers: must be an int in [1, 8], got {self.layers!r}")
-        if not isinstance(self.fill_observed, bool):
-            raise ConfigError(f"fill_observed: expected a bool, got {self.fill_observed!r}")
+        for k in ("fill_observed", "grow_behind"):
+            if not isinstance(getattr(self, k), bool):
+                raise ConfigError(f"{k}: expected a bool, got {getattr(self, k)!r}")
         if not (isinstance(self.min_count, int) and self.min_count >= 1):
             raise ConfigError(f"min_count: must be an int >= 1, got {self.min_count!r}")
 
@@ -243,8 +257,9 @@ def complete_occluders(background: Gaussians, views, settings: OccluderSettings 
     if not len(centres):
         return Gaussians.empty(dt)
     starts = tops + s.step_m  # above what was seen
-    means, col, roof = _grow(centres, starts, np.full(len(centres), s.max_height_m), views, s)
-    ext = _continued_columns(centres, bottoms, normals, roof, views, s)
+    base = centres - s.inset_m * normals[:, :2] if s.grow_behind else centres
+    means, col, roof = _grow(base, starts, np.full(len(centres), s.max_height_m), views, s)
+    ext = _continued_columns(base, bottoms, normals, roof, views, s)
     if ext is not None:
         e_means, e_col, _ = _grow(ext[0], ext[1], ext[2], views, s)
         means, col = np.concatenate([means, e_means]), np.concatenate([col, e_col + len(centres)])

@@ -64,7 +64,8 @@ def test_an_unseen_wall_top_is_extended_to_the_cap_with_wall_disks():
     # every column runs from its top to the cap in step_m steps
     assert occ.num == sum(int(np.floor((12.0 - t) / s.step_m)) for t in tops)
     assert np.allclose(occ.unit_normals().numpy(), [0.0, -1.0, 0.0], atol=1e-5)
-    assert np.allclose(occ.means[:, 1].numpy(), 5.25, atol=0.26)  # on the wall's grid cells
+    # on the wall's grid cells, inset_m behind the surface (inside the building)
+    assert np.allclose(occ.means[:, 1].numpy(), 5.25 + s.inset_m, atol=0.26)
     assert torch.isfinite(occ.means).all() and (occ.opacities() > 0.9).all()
 
 
@@ -85,6 +86,36 @@ def test_sky_seen_above_the_wall_stops_the_columns_at_the_roof_line():
     assert complete_occluders(wall, [behind], OccluderSettings(max_height_m=12.0)).num == occ.num
 
 
+def _plane_view(eye, target, wall_y: float, w=320, h=240, fov_deg=60.0):
+    """A frame whose rendered depth is the plane y = ``wall_y`` (optical-axis metres; 0 where a
+    ray never meets it) and no sky: a facade seen down the street."""
+    cam, sky, _ = _view(eye, target, w, h, fov_deg)
+    d = cam.ray_directions().reshape(h, w, 3)
+    fwd = cam.pose_numpy()[:3, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (wall_y - np.asarray(eye, float)[1]) / d[..., 1]
+    depth = np.where(np.isfinite(t) & (t > 0), t * (d @ fwd), 0.0)
+    return cam, sky, depth
+
+
+def test_a_facade_seen_down_the_street_keeps_its_columns_grown_behind_the_surface():
+    # the wall's surface at y = 4.9 lies in the grid cells [4.5, 5.0): their centres are 0.15 m in
+    # front of it, in the street's free space
+    wall = _wall(y=4.9, z1=4.0)
+    graze = _plane_view((-25.0, 0.0, 1.5), (10.0, 4.9, 7.0), 4.9)
+    cap = OccluderSettings(max_height_m=10.0, **UPWARD_ONLY)
+    free = complete_occluders(wall, [], cap).num
+    kept = complete_occluders(wall, [graze], cap)
+    at_centres = complete_occluders(wall, [graze], OccluderSettings(max_height_m=10.0, grow_behind=False,
+                                                                      **UPWARD_ONLY))
+    # seen at a grazing angle, a point 0.15 m in front of the facade is > depth_margin_m in front
+    # of its rendered depth: a frame "saw through" it and the columns stopped
+    assert at_centres.num < 0.5 * free
+    # behind the surface, nothing the frame saw is in front of them: every column grows to the cap
+    assert kept.num == free
+    assert (kept.means[:, 1].numpy() > 4.9).all()
+
+
 def test_nothing_for_ground_kerbs_or_an_empty_scene():
     ground = _flat(np.array([[x, y, 0.0] for x in range(10) for y in range(5)], float), (0.0, 0.0, 1.0))
     assert complete_occluders(ground, []).num == 0
@@ -96,7 +127,7 @@ def test_nothing_for_ground_kerbs_or_an_empty_scene():
 
 @pytest.mark.parametrize("field,value", [("cell_m", 0.0), ("step_m", float("nan")), ("opacity", 1.0),
                                          ("min_count", 0), ("max_height_m", -1.0), ("layers", 0), ("layers", 2.0),
-                                         ("inset_m", 0.0), ("layer_spacing_m", -0.1), ("fill_observed", 1),
+                                         ("inset_m", 0.0), ("layer_spacing_m", -0.1), ("fill_observed", 1), ("grow_behind", "yes"),
                                          ("wall_tolerance_m", 0.0)])
 def test_settings_are_validated_naming_the_field(field, value):
     with pytest.raises(ConfigError, match=field):
@@ -206,10 +237,10 @@ def test_a_tree_in_front_of_the_wall_is_not_continued_as_the_wall():
     s = OccluderSettings(max_height_m=8.0, extend_m=3.0, **UPWARD_ONLY)
     occ = complete_occluders(scene, path, s).means.numpy()
     behind = occ[occ[:, 0] < 0.0]
-    assert len(behind) and np.allclose(behind[:, 1], 5.25, atol=0.26)  # on the wall's line (cell centres)
+    assert len(behind) and np.allclose(behind[:, 1], 5.25 + s.inset_m, atol=0.26)  # on the wall's line, behind it
     loose = complete_occluders(scene, path, OccluderSettings(max_height_m=8.0, extend_m=3.0, wall_tolerance_m=100.0,
                                                              **UPWARD_ONLY)).means.numpy()
-    assert (np.abs(loose[loose[:, 0] < 0.0, 1] - 3.25) < 0.26).any()  # without the line test the tree is continued
+    assert (np.abs(loose[loose[:, 0] < 0.0, 1] - 3.25 - s.inset_m) < 0.26).any()  # without the line test the tree is continued
 
 
 def test_a_side_of_two_far_apart_columns_still_continues():
