@@ -156,7 +156,13 @@ def _stage_line(name: str, s: dict) -> str:
 def cmd_reconstruct(a: argparse.Namespace) -> int:
     from core.stages.chain import run_pipeline
 
-    b = _open_any(a.scene)
+    from core.stages.chain import RUN_FILE, RunDir
+
+    scene = a.scene
+    if scene is None:  # the run's own scene when resuming one, else the bundled scene
+        scene = (str(RunDir(a.out).scene_path()) if a.resume and a.out and (Path(a.out) / RUN_FILE).is_file()
+                 else str(DEFAULT_SCENE))
+    b = _open_any(scene)
     out = Path(a.out) if a.out else REPO_ROOT / "runs" / f"{b.name}_{a.profile}"
 
     def on_stage(name, what, summary):
@@ -487,7 +493,8 @@ def build_parser(extensions=()) -> argparse.ArgumentParser:
     r.set_defaults(fn=cmd_render)
 
     rc = sub.add_parser("reconstruct", help="run the inverse-rendering pipeline (the paper's five stages)")
-    rc.add_argument("--scene", default=str(DEFAULT_SCENE), help="bundle dir or archive (default: bundled scene)")
+    rc.add_argument("--scene", default=None, help="bundle dir or archive (default: with --resume, the run's own "
+                    "scene; else the bundled scene)")
     rc.add_argument("--profile", default="quick", help="tiny | quick | benchmark | paper (default quick)")
     rc.add_argument("--stages", default=None, help="comma-separated subset of volume,generative_refine,volume2,"
                     "pbr,joint (default all, in chain order)")

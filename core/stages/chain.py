@@ -443,6 +443,10 @@ def run_pipeline(scene: str | Path, run_dir: str | Path, profile: str = "quick",
         run = RunDir(root)
         if run.profile != profile:
             raise ConfigError(f"profile: the run in {root} was made with profile {run.profile!r}, not {profile!r}")
+        recorded, given = run.scene_path(), Path(scene).resolve()
+        if recorded != given and recorded.is_dir():  # (an archive's unpacked copy may be gone: not checked)
+            raise ConfigError(f"scene: the run in {root} reconstructs {recorded}, not {given}; resume it with "
+                              f"that scene (the CLI takes it from the run when --scene is left out)")
     else:
         run = RunDir.create(root, scene, profile)
     bundle = open_bundle(scene)

@@ -111,6 +111,21 @@ def test_an_existing_run_is_kept_unless_resumed(tiny_scene, tiny_run):
     assert seen == [(s, "skip") for s in STAGES]
 
 
+def test_a_run_resumes_only_on_its_own_scene(tiny_scene, tiny_run, small_bundle, capsys):
+    from core.cli import main
+
+    before = {p: p.stat().st_mtime_ns for p in Path(tiny_run).rglob("*") if p.is_file()}
+    with pytest.raises(ConfigError, match="scene"):
+        run_pipeline(small_bundle, tiny_run, "tiny", resume=True, progress=False)
+    assert main(["reconstruct", "--scene", str(small_bundle), "--profile", "tiny", "--out", str(tiny_run),
+                 "--resume", "--quiet"]) == 2
+    assert "scene" in capsys.readouterr().err
+    # without --scene, the CLI resumes the run on the scene it was made from
+    assert main(["reconstruct", "--profile", "tiny", "--out", str(tiny_run), "--resume", "--quiet"]) == 0
+    assert open_bundle(tiny_scene).name in capsys.readouterr().out
+    assert {p: p.stat().st_mtime_ns for p in Path(tiny_run).rglob("*") if p.is_file()} == before  # nothing lost
+
+
 def test_a_stage_needs_its_inputs(tiny_scene, tmp_path):
     run = RunDir.create(tmp_path / "r", tiny_scene, "tiny")
     with pytest.raises(ConfigError, match="volume"):
