@@ -154,9 +154,7 @@ def _stage_line(name: str, s: dict) -> str:
 
 
 def cmd_reconstruct(a: argparse.Namespace) -> int:
-    from core.stages.chain import run_pipeline
-
-    from core.stages.chain import RUN_FILE, RunDir
+    from core.stages.chain import RUN_FILE, RunDir, run_pipeline
 
     scene = a.scene
     if scene is None:  # the run's own scene when resuming one, else the bundled scene

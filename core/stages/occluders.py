@@ -9,10 +9,11 @@ the sun's colour) with the reconstruction's albedo within 5% of the truth.
 This module completes the walls for shadow rays only (the Gaussians it returns are never
 rasterized, so no novel view changes): each column of the reconstructed facades (a ``cell_m``
 grid cell in x, y holding opaque Gaussians whose normals are near horizontal) is continued
-upward from its highest Gaussian, ``inset_m`` behind the facade (inside the building), in ``step_m`` steps to ``max_height_m``, and a step is kept
-while no training frame has *seen through it*: a point that projects into a frame on a sky
-pixel, or in front of the depth that frame's reconstruction renders there, is free space, and
-the column stops below it (walls have no holes). Where the capture saw a building's roof line
+upward from its highest Gaussian, ``inset_m`` behind the facade (inside the building), in
+``step_m`` steps to ``max_height_m``, and a step is kept while no training frame has *seen
+through it*: a point that projects into a frame on a sky pixel, or in front of the depth that
+frame's reconstruction renders there, is free space, and the column stops below it (walls have no
+holes). Where the capture saw a building's roof line
 against the sky the column ends there; where it never saw the top it is extended to
 ``max_height_m``.
 
@@ -266,7 +267,8 @@ def complete_occluders(background: Gaussians, views, settings: OccluderSettings 
     if not len(centres):
         return Gaussians.empty(dt)
     starts = tops + s.step_m  # above what was seen
-    base = centres - s.inset_m * normals[:, :2] if s.grow_behind else centres
+    behind = centres - s.inset_m * normals[:, :2]  # inside the building, off the facade surface
+    base = behind if s.grow_behind else centres
     means, col, roof = _grow(base, starts, np.full(len(centres), s.max_height_m), views, s)
     ext = _continued_columns(base, bottoms, normals, roof, views, s)
     if ext is not None:
@@ -277,7 +279,7 @@ def complete_occluders(background: Gaussians, views, settings: OccluderSettings 
     if s.fill_observed:
         # the observed part of each column, backed from behind its surface (the same carving:
         # a step some frame saw through ends the column there)
-        f_means, f_col, _ = _grow(centres - s.inset_m * normals[:len(centres), :2], bottoms, tops, views, s)
+        f_means, f_col, _ = _grow(behind, bottoms, tops, views, s)
         means = np.concatenate([means, f_means])
         nrm = np.concatenate([nrm, normals[f_col]])
     if not len(means):
