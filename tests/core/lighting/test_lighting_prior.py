@@ -124,3 +124,25 @@ def test_bad_inputs():
     frames[0, 0, 0, 0] = np.nan
     with pytest.raises(NumericalError, match="frames"):
         L.estimate_lighting(frames, cams, sky, depth, normals)
+
+
+def test_basin_search_ignores_a_narrow_valley_far_from_the_low_region():
+    """A broad low region around the sun and one deeper, narrow valley far from it (noise of a
+    reconstruction's landscape, on a coarse grid point): the plain search takes the valley, the
+    basin search (``basin_quantile``) stays in the low region and finds the sun."""
+    sun = L._sph(math.radians(60.0), math.radians(45.0))
+    spur = L._sph(math.radians(-140.0), math.radians(18.0))  # a point of the 8-degree coarse grid
+
+    def score(cands):
+        c = np.asarray(cands, np.float64).reshape(-1, 3)
+        to_sun = np.degrees(np.arccos(np.clip(c @ sun, -1, 1)))
+        to_spur = np.degrees(np.arccos(np.clip(c @ spur, -1, 1)))
+        return 0.5 + 0.5 * to_sun / 180.0 - 0.45 * np.exp(-(to_spur / 2.0) ** 2)
+
+    plain, _, _ = L._search_sun(score, L.LightingSettings())
+    assert L.sun_direction_error_deg(plain, spur) < 2.0
+    found, _, diag = L._search_sun(score, L.LightingSettings(basin_quantile=0.05))
+    assert L.sun_direction_error_deg(found, sun) < 2.0
+    assert L.sun_direction_error_deg(np.asarray(diag["basin_centroid"]), sun) < 15.0
+    with pytest.raises(ConfigError, match="basin_quantile"):
+        L.LightingSettings(basin_quantile=1.0)

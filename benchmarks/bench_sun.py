@@ -1,0 +1,185 @@
+"""Where does the sun of a reconstruction go wrong? The lighting prior's sun search
+(:func:`core.lighting.prior.estimate_lighting`) on a run's frames and G-buffers, in variants:
+
+* ``product``: what the pbr stage runs (its settings from the run's ``run.json``);
+* ``lambert_shadows`` / ``transport_shadows``: the search with cast shadows traced through the
+  reconstruction's static Gaussians and completed facades (``SceneGraph.shadow_static``);
+* ``gt_*`` rows (diagnostics, **ground-truth inputs**, never the product): the bundle's true
+  normals + depth, albedo, or everything, put in place of the reconstruction's, to see which
+  G-buffer the search fails on.
+
+Each row: the sun direction error against the true map's brightest direction, the sun source
+and the search's residual contrast.
+
+    python benchmarks/bench_sun.py RUN [RUN ...] [--variants product,lambert_shadows] --out J
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+import core.lighting.prior as prior_mod  # noqa: E402
+from core.camera import Camera  # noqa: E402
+from core.lighting.prior import (LightingSettings, brightest_direction, estimate_lighting,  # noqa: E402
+                                 numpy_visibility, sun_direction_error_deg)
+from core.stages.chain import RunDir  # noqa: E402
+from core.stages.pbr import PBRStageConfig, _frames  # noqa: E402
+
+#: Named variants; any "+"-joined set of the tokens lambert | transport, shadows, mats (leave out
+#: glossy and metallic samples), FIELD=JSON (a LightingSettings field), gtgeo, gtalb, gtmat (ground-truth G-buffers: diagnostics) is one too.
+VARIANT_TOKENS = {"product": "lambert", "lambert_shadows": "lambert+shadows", "transport_shadows": "transport+shadows",
+                  "gt_all": "lambert+gtgeo+gtalb+gtmat", "gt_all_shadows": "lambert+shadows+gtgeo+gtalb+gtmat"}
+TOKENS = {"lambert", "transport", "shadows", "mats", "gtgeo", "gtalb", "gtmat"}
+VARIANTS = tuple(VARIANT_TOKENS)
+
+
+def _inputs(frames, bundle):
+    imgs, skies, deps, nrms, albs, rgh, met = [], [], [], [], [], [], []
+    for f in frames:
+        h, w = f.camera.height, f.camera.width
+        o = f.gbuf["opacity"].reshape(h, w, 1).double().numpy()
+        inv = np.where(o > 1e-3, 1.0 / np.maximum(o, 1e-3), 0.0)
+        imgs.append(f.target.reshape(h, w, 3).numpy())
+        sky = o[..., 0] < 0.5
+        skies.append(sky)
+        deps.append(np.where(sky, 0.0, (f.gbuf["depth"].double().numpy() * inv)[..., 0]))
+        n = f.gbuf["normal"].double().numpy()
+        nrms.append((n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-9)).astype(np.float32))
+        albs.append(np.clip(f.gbuf["albedo"].double().numpy() * inv, 0, 1))
+        rgh.append(np.clip(f.gbuf["roughness"].double().numpy() * inv, 0, 1)[..., 0])
+        met.append(np.clip(f.gbuf["metallic"].double().numpy() * inv, 0, 1)[..., 0])
+    return {k: np.stack(v) for k, v in dict(img=imgs, sky=skies, dep=deps, nrm=nrms, alb=albs, rough=rgh,
+                                             metal=met).items()}
+
+
+def _gt(bundle, cfg):
+    frames = sorted(bundle.frames("train"), key=lambda f: (f.time_index, f.id))
+    pick = np.unique(np.linspace(0, len(frames) - 1, min(cfg.max_frames, len(frames))).round().astype(int))
+    out = {"dep": [], "nrm": [], "alb": [], "rough": [], "metal": [], "sky": []}
+    for i in pick:
+        fr = frames[int(i)]
+        c = bundle.camera(fr)
+        g = bundle.load_ground_truth(fr)
+        hw = (c.height, c.width)
+        d = np.asarray(g["depth"], np.float64).reshape(hw)
+        out["dep"].append(d)
+        out["sky"].append(d <= 0)
+        out["nrm"].append(np.asarray(g["normal"], np.float32).reshape(*hw, 3))
+        out["alb"].append(np.asarray(g["albedo"], np.float64).reshape(*hw, 3))
+        out["rough"].append(np.asarray(g["roughness"], np.float64).reshape(hw))
+        out["metal"].append(np.asarray(g["metallic"], np.float64).reshape(hw))
+    return {k: np.stack(v) for k, v in out.items()}
+
+
+def _f(x) -> str:
+    return "-" if x is None else f"{x:.4g}"
+
+
+def run_one(run_path: str, variants, gt_sky_as_input: bool = False) -> dict:
+    run = RunDir(run_path)
+    from core.bundle import open_bundle
+
+    bundle = open_bundle(run.scene_path())
+    graph, _sky, stage = run.load_scene(before="pbr")
+    cfg = PBRStageConfig()
+    t0 = time.perf_counter()
+    frames, tracer = _frames(graph, bundle, cfg)
+    x = _inputs(frames, bundle)
+    cams = Camera.stack([f.camera for f in frames])
+    m = bundle.manifest
+    true_sun = brightest_direction(np.asarray(bundle.load_envmap(), np.float64))
+    vis = numpy_visibility(tracer) if tracer is not None else None
+    gt = _gt(bundle, cfg) if any("gt" in VARIANT_TOKENS.get(v, v) for v in variants) else None
+    rows = {"graph_stage": stage, "frames": len(frames), "setup_s": round(time.perf_counter() - t0, 1)}
+    for v in variants:
+        t1 = time.perf_counter()
+        d = dict(x)
+        toks = set(VARIANT_TOKENS.get(v, v).split("+"))
+        model = "transport" if "transport" in toks else "lambert"
+        use_vis, mats = "shadows" in toks, "mats" in toks or model == "transport"
+        if "gtgeo" in toks:
+            d.update(dep=np.where(gt["sky"], 0, gt["dep"]), nrm=gt["nrm"])
+        if "gtalb" in toks:
+            d.update(alb=gt["alb"])
+        if "gtmat" in toks:
+            d.update(rough=gt["rough"], metal=gt["metal"])
+        kw = dict(roughness=d["rough"], metallic=d["metal"]) if mats else {}
+        extra = {k: json.loads(val) for k, val in (t.split("=", 1) for t in toks if "=" in t)}
+        probe = {}
+
+        def search(score, st, _orig=prior_mod._search_sun, _probe=probe):
+            def keep(c, _score=score):
+                r = _score(c)
+                _probe.setdefault("grid", (np.asarray(c), np.asarray(r)))  # the coarse grid
+                return r
+            out = _orig(keep, st)
+            # the residual the true sun gets (after the search: a combined score normalises by
+            # the medians of its first call, the coarse grid)
+            _probe["true"] = float(score(true_sun[None])[0])
+            return out
+        prior_mod._search_sun = search
+        est = estimate_lighting(d["img"], cams, d["sky"], d["dep"], d["nrm"], albedo=d["alb"], exposure=m.ldr_exposure,
+                                gamma=m.ldr_gamma, settings=LightingSettings(height=64, sun_model=model,
+                                                                             **extra),
+                                visibility=vis if use_vis else None, **kw)
+        prior_mod._search_sun = search.__defaults__[0]
+        err = float(sun_direction_error_deg(est.sun_dir, true_sun))
+        if "grid" in probe:  # how the low region of the coarse grid lies around the true sun
+            g, r = probe["grid"]
+            ok = np.isfinite(r)
+            g, r = g[ok], r[ok]
+            soft = {}
+            for q in (0.02, 0.05, 0.1):
+                sel = r <= np.quantile(r, q)
+                c = g[sel].mean(0)
+                soft[f"centroid_best_{q:g}"] = round(float(sun_direction_error_deg(c / np.linalg.norm(c), true_sun)), 1)
+            soft["rank_of_true_sun"] = round(float((r < probe["true"]).mean()), 3)
+            probe["soft"] = soft
+            print("   low region of the coarse grid:", soft, flush=True)
+        dg = est.diagnostics
+        rows[v] = {"sun_error_deg": round(err, 1), "sun_source": est.sun_source,
+                   "sun_dir": [round(float(a), 3) for a in est.sun_dir],
+                   "elevation_deg": round(math.degrees(math.asin(float(np.clip(est.sun_dir[2], -1, 1)))), 1),
+                   "contrast": round(float(dg.get("shading_contrast", float("nan"))), 3),
+                   "residual_best": dg.get("shading_residual"), "residual_median": dg.get("shading_residual_median"),
+                   "residual_true_sun": probe.get("true"), "coarse_grid": probe.get("soft"),
+                   "seconds": round(time.perf_counter() - t1, 1)}
+        print(f"{Path(run_path).name:>16} {v:>20}: sun {err:6.1f} deg ({est.sun_source}, elev "
+              f"{rows[v]['elevation_deg']}, contrast {rows[v]['contrast']}; residual best / true sun / median "
+              f"{_f(dg.get('shading_residual'))} / {_f(probe.get('true'))} / {_f(dg.get('shading_residual_median'))})",
+              flush=True)
+    rows["true_sun"] = [round(float(a), 3) for a in true_sun]
+    rows["true_elevation_deg"] = round(math.degrees(math.asin(float(true_sun[2]))), 1)
+    return rows
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("runs", nargs="+")
+    ap.add_argument("--variants", default=",".join(VARIANTS))
+    ap.add_argument("--out", default="")
+    a = ap.parse_args()
+    variants = [v for v in a.variants.split(",") if v]
+    bad = [v for v in variants if v not in VARIANTS
+           and not all(t in TOKENS or "=" in t for t in v.split("+"))]
+    if bad:
+        ap.error(f"--variants: unknown {bad}; choose from {list(VARIANTS)}")
+    res = {r: run_one(r, variants) for r in a.runs}
+    if a.out:
+        Path(a.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(a.out).write_text(json.dumps(res, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
