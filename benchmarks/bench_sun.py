@@ -12,6 +12,10 @@ Each row: the sun direction error against the true map's brightest direction, th
 and the search's residual contrast.
 
     python benchmarks/bench_sun.py RUN [RUN ...] [--variants product,lambert_shadows] --out J
+
+``--compare ROLE:NAME:BEFORE:AFTER ...`` instead tabulates two evaluated runs per scene (their
+``evaluation.json``, ``brdf evaluate``): the pipeline's figures before and after a change of the
+pbr stage, per scene and the mean per role.
 """
 
 from __future__ import annotations
@@ -30,16 +34,18 @@ sys.path.insert(0, str(REPO))
 
 import core.lighting.prior as prior_mod  # noqa: E402
 from core.camera import Camera  # noqa: E402
+from eval_pipeline import machine  # noqa: E402
 from core.lighting.prior import (LightingSettings, brightest_direction, estimate_lighting,  # noqa: E402
                                  numpy_visibility, sun_direction_error_deg)
 from core.stages.chain import RunDir  # noqa: E402
 from core.stages.pbr import PBRStageConfig, _frames  # noqa: E402
 
 #: Named variants; any "+"-joined set of the tokens lambert | transport, shadows, mats (leave out
-#: glossy and metallic samples), FIELD=JSON (a LightingSettings field), gtgeo, gtalb, gtmat (ground-truth G-buffers: diagnostics) is one too.
+#: glossy and metallic samples), nooccl (shadows through the Gaussians alone, no completed facades),
+#: noalb (luminance instead of radiance / albedo), FIELD=JSON (a LightingSettings field), gtgeo, gtalb, gtmat (ground-truth G-buffers: diagnostics) is one too.
 VARIANT_TOKENS = {"product": "lambert", "lambert_shadows": "lambert+shadows", "transport_shadows": "transport+shadows",
                   "gt_all": "lambert+gtgeo+gtalb+gtmat", "gt_all_shadows": "lambert+shadows+gtgeo+gtalb+gtmat"}
-TOKENS = {"lambert", "transport", "shadows", "mats", "gtgeo", "gtalb", "gtmat"}
+TOKENS = {"lambert", "transport", "shadows", "nooccl", "noalb", "mats", "gtgeo", "gtalb", "gtmat"}
 VARIANTS = tuple(VARIANT_TOKENS)
 
 
@@ -99,6 +105,10 @@ def run_one(run_path: str, variants, gt_sky_as_input: bool = False) -> dict:
     m = bundle.manifest
     true_sun = brightest_direction(np.asarray(bundle.load_envmap(), np.float64))
     vis = numpy_visibility(tracer) if tracer is not None else None
+    vis_bare = None
+    if any("nooccl" in VARIANT_TOKENS.get(v, v) for v in variants):  # the Gaussians alone, no completed facades
+        from core.pbr.visibility import GaussianTracer
+        vis_bare = numpy_visibility(GaussianTracer.from_gaussians(graph._static_part().detach(), cfg.trace_settings()))
     gt = _gt(bundle, cfg) if any("gt" in VARIANT_TOKENS.get(v, v) for v in variants) else None
     rows = {"graph_stage": stage, "frames": len(frames), "setup_s": round(time.perf_counter() - t0, 1)}
     for v in variants:
@@ -128,10 +138,10 @@ def run_one(run_path: str, variants, gt_sky_as_input: bool = False) -> dict:
             _probe["true"] = float(score(true_sun[None])[0])
             return out
         prior_mod._search_sun = search
-        est = estimate_lighting(d["img"], cams, d["sky"], d["dep"], d["nrm"], albedo=d["alb"], exposure=m.ldr_exposure,
+        est = estimate_lighting(d["img"], cams, d["sky"], d["dep"], d["nrm"], albedo=None if "noalb" in toks else d["alb"], exposure=m.ldr_exposure,
                                 gamma=m.ldr_gamma, settings=LightingSettings(height=64, sun_model=model,
                                                                              **extra),
-                                visibility=vis if use_vis else None, **kw)
+                                visibility=(vis_bare if "nooccl" in toks else vis) if use_vis else None, **kw)
         prior_mod._search_sun = search.__defaults__[0]
         err = float(sun_direction_error_deg(est.sun_dir, true_sun))
         if "grid" in probe:  # how the low region of the coarse grid lies around the true sun
@@ -163,12 +173,45 @@ def run_one(run_path: str, variants, gt_sky_as_input: bool = False) -> dict:
     return rows
 
 
+COMPARE_KEYS = ("sun_error_deg", "rerender_psnr", "relight_psnr", "relight_ssim", "relight_flip", "nvs_psnr",
+                "albedo_si_psnr")
+
+
+def compare(specs) -> dict:
+    """``ROLE:NAME:BEFORE:AFTER`` run pairs -> per scene and per role mean of COMPARE_KEYS."""
+    out: dict = {"scenes": {}, "means": {}}
+    for spec in specs:
+        role, name, before, after = spec.split(":")
+        row = {"role": role, "runs": {"before": before, "after": after}}
+        for k, run in (("before", before), ("after", after)):
+            ev = json.loads((Path(run) / "evaluation.json").read_text())["summary"]
+            row[k] = {key: ev.get(key) for key in COMPARE_KEYS}
+        out["scenes"][name] = row
+    for role in sorted({r["role"] for r in out["scenes"].values()}):
+        rows = [r for r in out["scenes"].values() if r["role"] == role]
+        out["means"][role] = {k: {key: round(float(np.mean([r[k][key] for r in rows])), 3) for key in COMPARE_KEYS}
+                              for k in ("before", "after")}
+        out["means"][role]["scenes"] = [n for n, r in out["scenes"].items() if r["role"] == role]
+    for name, r in out["scenes"].items():
+        print(f"{name:>10} ({r['role']}): " + ", ".join(f"{k} {r['before'][k]:.2f} -> {r['after'][k]:.2f}"
+                                                  for k in COMPARE_KEYS[:4]))
+    return out
+
+
 def main() -> int:
     ap = argparse.ArgumentParser()
-    ap.add_argument("runs", nargs="+")
+    ap.add_argument("runs", nargs="*")
+    ap.add_argument("--compare", nargs="+", default=None, metavar="ROLE:NAME:BEFORE:AFTER")
     ap.add_argument("--variants", default=",".join(VARIANTS))
     ap.add_argument("--out", default="")
     a = ap.parse_args()
+    if a.compare:
+        res = {"machine": machine(), "what": "the pipeline's figures (brdf evaluate) before and after", **compare(a.compare)}
+        if a.out:
+            Path(a.out).write_text(json.dumps(res, indent=1))
+        return 0
+    if not a.runs:
+        ap.error("give runs, or --compare")
     variants = [v for v in a.variants.split(",") if v]
     bad = [v for v in variants if v not in VARIANTS
            and not all(t in TOKENS or "=" in t for t in v.split("+"))]
