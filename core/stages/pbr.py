@@ -136,12 +136,12 @@ class PBRStageConfig(StageShading):
     Gaussians and its completed facades (``SceneGraph.shadow_static``, the occluders a relight
     traces). Measured on the development scenes after the quick volume2 stage
     (``benchmarks/bench_sun.py``; default scene, dev1, dev2): the prior's sun 24.2 / 41.8 /
-    47.9 deg off without shadows, 11.2 / 6.8 / 38.9 deg with them, ``prior_points`` 16000 and
+    47.9 deg off without shadows, 11.2 / 6.8 / 22.3 deg with them, ``prior_points`` 16000 and
     ``prior_basin_quantile`` 0.05. The whole pipeline (pbr and joint re-run from one volume2 per
-    scene, ``brdf evaluate``; ``benchmarks/results/sun_prior.json``): development mean sun error
-    38.1 -> 18.8 deg, re-render 18.91 -> 20.29 dB; test streets (run once, after the choice)
-    46.4 -> 22.7 deg, re-render 16.67 -> 17.62 dB; relight unchanged. The low sunrise sun (7.9 deg
-    high) stays ~38 deg off on dev2 and test2: with the true albedo the search finds dev2's within
+    scene, ``brdf evaluate``; ``benchmarks/results/sun_prior.json``): development mean (the default
+    scene twice, dev1, dev2) sun error 34.7 -> 12.1 deg, re-render 18.91 -> 20.10 dB; test streets
+    46.4 -> 17.9 deg, re-render 16.67 -> 17.99 dB; relight unchanged. The low sunrise sun (7.9 deg
+    high) stays 22-29 deg off on dev2 and test2: with the true albedo the search finds dev2's within
     17 deg, with the reconstruction's it does not. (Before the completed facades existed, the
     soft, incomplete Gaussians alone put the default scene's sun 94 deg off with the cue.)"""
     prior_points: int = 16000
