@@ -1,9 +1,11 @@
 """Where does the sun of a reconstruction go wrong? The lighting prior's sun search
 (:func:`core.lighting.prior.estimate_lighting`) on a run's frames and G-buffers, in variants:
 
-* ``product``: what the pbr stage runs (its settings from the run's ``run.json``);
-* ``lambert_shadows`` / ``transport_shadows``: the search with cast shadows traced through the
-  reconstruction's static Gaussians and completed facades (``SceneGraph.shadow_static``);
+* ``product``: what the pbr stage runs at its defaults (cast shadows traced through the
+  reconstruction's static Gaussians and completed facades, ``SceneGraph.shadow_static``;
+  ``PBRStageConfig.prior_points`` and ``prior_basin_quantile``);
+* ``no_shadows``: the stage's search before them (no cast shadows, 4000 samples, no basin);
+* ``lambert_shadows`` / ``transport_shadows``: the two sun models with cast shadows;
 * ``gt_*`` rows (diagnostics, **ground-truth inputs**, never the product): the bundle's true
   normals + depth, albedo, or everything, put in place of the reconstruction's, to see which
   G-buffer the search fails on.
@@ -34,38 +36,22 @@ sys.path.insert(0, str(REPO))
 
 import core.lighting.prior as prior_mod  # noqa: E402
 from core.camera import Camera  # noqa: E402
-from eval_pipeline import machine  # noqa: E402
 from core.lighting.prior import (LightingSettings, brightest_direction, estimate_lighting,  # noqa: E402
                                  numpy_visibility, sun_direction_error_deg)
 from core.stages.chain import RunDir  # noqa: E402
-from core.stages.pbr import PBRStageConfig, _frames  # noqa: E402
+from core.stages.pbr import PBRStageConfig, _frames, prior_inputs  # noqa: E402
+from eval_pipeline import machine  # noqa: E402
+
+_STAGE = PBRStageConfig()
 
 #: Named variants; any "+"-joined set of the tokens lambert | transport, shadows, mats (leave out
 #: glossy and metallic samples), nooccl (shadows through the Gaussians alone, no completed facades),
 #: noalb (luminance instead of radiance / albedo), FIELD=JSON (a LightingSettings field), gtgeo, gtalb, gtmat (ground-truth G-buffers: diagnostics) is one too.
-VARIANT_TOKENS = {"product": "lambert", "lambert_shadows": "lambert+shadows", "transport_shadows": "transport+shadows",
+VARIANT_TOKENS = {"product": f"lambert+shadows+max_points={_STAGE.prior_points}+basin_quantile={_STAGE.prior_basin_quantile}",
+                  "no_shadows": "lambert", "lambert_shadows": "lambert+shadows", "transport_shadows": "transport+shadows",
                   "gt_all": "lambert+gtgeo+gtalb+gtmat", "gt_all_shadows": "lambert+shadows+gtgeo+gtalb+gtmat"}
 TOKENS = {"lambert", "transport", "shadows", "nooccl", "noalb", "mats", "gtgeo", "gtalb", "gtmat"}
 VARIANTS = tuple(VARIANT_TOKENS)
-
-
-def _inputs(frames, bundle):
-    imgs, skies, deps, nrms, albs, rgh, met = [], [], [], [], [], [], []
-    for f in frames:
-        h, w = f.camera.height, f.camera.width
-        o = f.gbuf["opacity"].reshape(h, w, 1).double().numpy()
-        inv = np.where(o > 1e-3, 1.0 / np.maximum(o, 1e-3), 0.0)
-        imgs.append(f.target.reshape(h, w, 3).numpy())
-        sky = o[..., 0] < 0.5
-        skies.append(sky)
-        deps.append(np.where(sky, 0.0, (f.gbuf["depth"].double().numpy() * inv)[..., 0]))
-        n = f.gbuf["normal"].double().numpy()
-        nrms.append((n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-9)).astype(np.float32))
-        albs.append(np.clip(f.gbuf["albedo"].double().numpy() * inv, 0, 1))
-        rgh.append(np.clip(f.gbuf["roughness"].double().numpy() * inv, 0, 1)[..., 0])
-        met.append(np.clip(f.gbuf["metallic"].double().numpy() * inv, 0, 1)[..., 0])
-    return {k: np.stack(v) for k, v in dict(img=imgs, sky=skies, dep=deps, nrm=nrms, alb=albs, rough=rgh,
-                                             metal=met).items()}
 
 
 def _gt(bundle, cfg):
@@ -91,16 +77,18 @@ def _f(x) -> str:
     return "-" if x is None else f"{x:.4g}"
 
 
-def run_one(run_path: str, variants, gt_sky_as_input: bool = False) -> dict:
+def run_one(run_path: str, variants) -> dict:
     run = RunDir(run_path)
     from core.bundle import open_bundle
 
     bundle = open_bundle(run.scene_path())
     graph, _sky, stage = run.load_scene(before="pbr")
-    cfg = PBRStageConfig()
+    cfg = _STAGE
     t0 = time.perf_counter()
     frames, tracer = _frames(graph, bundle, cfg)
-    x = _inputs(frames, bundle)
+    pin = prior_inputs(frames)
+    x = {k: pin[v] for k, v in (("img", "img"), ("sky", "sky"), ("dep", "depth"), ("nrm", "normal"), ("alb", "albedo"),
+                                ("rough", "roughness"), ("metal", "metallic"))}
     cams = Camera.stack([f.camera for f in frames])
     m = bundle.manifest
     true_sun = brightest_direction(np.asarray(bundle.load_envmap(), np.float64))
@@ -127,22 +115,24 @@ def run_one(run_path: str, variants, gt_sky_as_input: bool = False) -> dict:
         extra = {k: json.loads(val) for k, val in (t.split("=", 1) for t in toks if "=" in t)}
         probe = {}
 
-        def search(score, st, _orig=prior_mod._search_sun, _probe=probe):
+        orig = prior_mod._search_sun
+
+        def search(score, st, _probe=probe):
             def keep(c, _score=score):
                 r = _score(c)
                 _probe.setdefault("grid", (np.asarray(c), np.asarray(r)))  # the coarse grid
                 return r
-            out = _orig(keep, st)
-            # the residual the true sun gets (after the search: a combined score normalises by
-            # the medians of its first call, the coarse grid)
-            _probe["true"] = float(score(true_sun[None])[0])
+            out = orig(keep, st)
+            _probe["true"] = float(score(true_sun[None])[0])  # the residual the true sun gets
             return out
         prior_mod._search_sun = search
-        est = estimate_lighting(d["img"], cams, d["sky"], d["dep"], d["nrm"], albedo=None if "noalb" in toks else d["alb"], exposure=m.ldr_exposure,
-                                gamma=m.ldr_gamma, settings=LightingSettings(height=64, sun_model=model,
-                                                                             **extra),
-                                visibility=(vis_bare if "nooccl" in toks else vis) if use_vis else None, **kw)
-        prior_mod._search_sun = search.__defaults__[0]
+        try:
+            est = estimate_lighting(d["img"], cams, d["sky"], d["dep"], d["nrm"],
+                                    albedo=None if "noalb" in toks else d["alb"], exposure=m.ldr_exposure,
+                                    gamma=m.ldr_gamma, settings=LightingSettings(height=64, sun_model=model, **extra),
+                                    visibility=(vis_bare if "nooccl" in toks else vis) if use_vis else None, **kw)
+        finally:
+            prior_mod._search_sun = orig
         err = float(sun_direction_error_deg(est.sun_dir, true_sun))
         if "grid" in probe:  # how the low region of the coarse grid lies around the true sun
             g, r = probe["grid"]

@@ -335,8 +335,10 @@ def _transport_score(tr):
 
 
 def _search_sun(score, s: LightingSettings):
-    """Coarse grid over the upper hemisphere, then two finer grids around the best residual;
-    ``score(dirs [K, 3]) -> [K]`` is the residual of each candidate (inf: no sun term)."""
+    """Coarse grid over the upper hemisphere, then two finer grids around the best residuals
+    (with ``s.basin_quantile``: only within ``s.basin_radius_deg`` of the centroid of the grid's
+    low region, which is a start too); ``score(dirs [K, 3]) -> [K]`` is the residual of each
+    candidate (inf: no sun term)."""
     step = math.radians(s.coarse_step_deg)
     el_min = math.radians(s.min_elevation_deg)
     az = np.arange(-math.pi, math.pi, step)
@@ -347,7 +349,7 @@ def _search_sun(score, s: LightingSettings):
     # refine from the best few well-separated coarse candidates: the valley of the true sun is
     # only a few degrees wide (sharp shadows) and can sit between grid points
     allowed = np.isfinite(res)
-    basin = None
+    basin, cos_basin = None, math.cos(math.radians(s.basin_radius_deg))
     if s.basin_quantile > 0 and allowed.sum() >= 10:
         # the low region of the coarse grid as a whole: its centroid is stable where the single
         # best candidate jumps between narrow valleys of a noisy landscape
@@ -356,7 +358,7 @@ def _search_sun(score, s: LightingSettings):
         c = grid[low].mean(0)
         if np.linalg.norm(c) > 1e-6:
             basin = _unit(c)
-            allowed &= grid @ basin >= math.cos(math.radians(s.basin_radius_deg))
+            allowed &= grid @ basin >= cos_basin
     starts: list[int] = []
     for i in np.argsort(res):
         if len(starts) == s.search_starts or not np.isfinite(res[i]):
@@ -377,7 +379,7 @@ def _search_sun(score, s: LightingSettings):
             cand_dirs = _sph(aa.ravel(), ee.ravel())
             r2 = score(cand_dirs)
             if basin is not None:  # the refinement stays in the basin too
-                r2 = np.where(cand_dirs @ basin >= math.cos(math.radians(s.basin_radius_deg)), r2, np.inf)
+                r2 = np.where(cand_dirs @ basin >= cos_basin, r2, np.inf)
             b2 = int(np.argmin(r2))
             if r2[b2] <= cr:
                 ca, ce, cr = aa.ravel()[b2], ee.ravel()[b2], float(r2[b2])

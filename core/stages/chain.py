@@ -147,8 +147,8 @@ def _profile_table() -> dict[str, dict[str, Any]]:
             "volume": VolumeSettings(iterations=60, densify_from=20, densify_until=50, densify_every=15, init=tiny_init),
             "generative_refine": RefineSettings(),
             "volume2": VolumeSettings(iterations=30, densify_from=10**9, densify_until=0, init_from_graph=True),
-            "pbr": PBRStageConfig(iterations=30, pixels=512, rays_per_pixel=8, env_height=32, max_frames=4, prior_points=2000,
-                                  eval_pixels=512),
+            "pbr": PBRStageConfig(iterations=30, pixels=512, rays_per_pixel=8, env_height=32, max_frames=4,
+                                  prior_points=2000, eval_pixels=512),
             "joint": JointSettings(iterations=20, pixels=256, rays_per_pixel=8, max_frames=4),
         },
         # quick: the knee of the front (Kneedle, log CPU seconds against relight PSNR; measured

@@ -284,31 +284,42 @@ def sunless_capture(frames: list[_FrameData], bundle, cfg: PBRStageConfig) -> tu
     return None, stats
 
 
-def _prior(frames: list[_FrameData], bundle, height: int, tracer=None, search_sun: bool = True, *,
-           points: int = 4000, basin_quantile: float = 0.0):
-    """``E_g`` from the reconstruction's G-buffers (:func:`core.lighting.prior.estimate_lighting`),
-    with cast shadows traced through the reconstruction's static Gaussians (``tracer``).
-    ``search_sun`` False: no surface sample is given (depth 0 everywhere), so the estimate runs
-    no sun search and is the sky fit alone."""
-    imgs, skies, deps, nrms, albs = [], [], [], [], []
+def prior_inputs(frames: list[_FrameData], search_sun: bool = True) -> dict[str, np.ndarray]:
+    """The lighting prior's inputs from the stage's frames: ``img`` [T, H, W, 3] LDR, ``sky``
+    [T, H, W] bool (the render's uncovered pixels), ``depth`` [T, H, W] camera z-depth in metres
+    (0 on sky, and everywhere when ``search_sun`` is False), ``normal`` [T, H, W, 3] unit world
+    normals, ``albedo`` / ``roughness`` / ``metallic`` (coverage-normalised, in [0, 1];
+    ``[T, H, W, 3]`` / ``[T, H, W]``)."""
+    out: dict[str, list] = {k: [] for k in ("img", "sky", "depth", "normal", "albedo", "roughness", "metallic")}
     for f in frames:
         h, w = f.camera.height, f.camera.width
         o = f.gbuf["opacity"].reshape(h, w, 1).double()
         inv = torch.where(o > 1e-3, 1.0 / torch.where(o > 1e-3, o, torch.ones_like(o)), torch.zeros_like(o))
-        imgs.append(f.target.reshape(h, w, 3).numpy())
+        out["img"].append(f.target.reshape(h, w, 3).numpy())
         sky = (o[..., 0] < 0.5).numpy()
-        skies.append(sky)
-        deps.append(np.where(sky | (not search_sun), 0.0, (f.gbuf["depth"].double() * inv)[..., 0].numpy()))
+        out["sky"].append(sky)
+        out["depth"].append(np.where(sky | (not search_sun), 0.0, (f.gbuf["depth"].double() * inv)[..., 0].numpy()))
         n = f.gbuf["normal"].double()
-        n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-9)
-        nrms.append(n.numpy().astype(np.float32))
-        albs.append((f.gbuf["albedo"].double() * inv).clamp(0, 1).numpy())
+        out["normal"].append((n / n.norm(dim=-1, keepdim=True).clamp_min(1e-9)).numpy().astype(np.float32))
+        out["albedo"].append((f.gbuf["albedo"].double() * inv).clamp(0, 1).numpy())
+        for k in ("roughness", "metallic"):
+            out[k].append((f.gbuf[k].double() * inv).clamp(0, 1)[..., 0].numpy())
+    return {k: np.stack(v) for k, v in out.items()}
+
+
+def _prior(frames: list[_FrameData], bundle, height: int, tracer=None, search_sun: bool = True, *,
+           points: int, basin_quantile: float):
+    """``E_g`` from the reconstruction's G-buffers (:func:`core.lighting.prior.estimate_lighting`),
+    with cast shadows traced through ``tracer`` (the static Gaussians and completed facades; None =
+    no shadows); ``points`` and ``basin_quantile`` of the sun search. ``search_sun`` False: no
+    surface sample is given (depth 0 everywhere), so the estimate runs no sun search and is the
+    sky fit alone."""
+    x = prior_inputs(frames, search_sun)
     m = bundle.manifest
-    return estimate_lighting(np.stack(imgs), Camera.stack([f.camera for f in frames]), np.stack(skies),
-                             np.stack(deps), np.stack(nrms), albedo=np.stack(albs), exposure=m.ldr_exposure,
-                             gamma=m.ldr_gamma,
-                             # the transport sun model is measured with the true meshes as
-                             # occluders only; with a reconstruction's Gaussians it is not yet
+    return estimate_lighting(x["img"], Camera.stack([f.camera for f in frames]), x["sky"], x["depth"], x["normal"],
+                             albedo=x["albedo"], exposure=m.ldr_exposure, gamma=m.ldr_gamma,
+                             # lambert: with the reconstruction's shadows the sky-patch transport
+                             # model put the default scene's sun 31.7 deg off (benchmarks/bench_sun.py)
                              settings=LightingSettings(height=max(height, 8), sun_model="lambert", max_points=points,
                                                        basin_quantile=basin_quantile),
                              visibility=numpy_visibility(tracer) if tracer is not None else None)
