@@ -159,6 +159,59 @@ class SceneGraph:
         #: Shadow-only Gaussians (world frame): cast shadows in the PBR pass, never rasterized
         #: (:mod:`core.stages.occluders`: facades completed above the captured field of view).
         self.occluders: Gaussians | None = None
+        self._solid_cache: dict[str, tuple[int, Gaussians]] = {}
+
+    def node_solid(self, n: RigidNode) -> Gaussians:
+        """Shadow-only Gaussians filling node ``n``'s inside, in its own frame
+        (:func:`core.object_solids.solid_filler` in its tracked box; cached while its Gaussians
+        are the same object). Empty for a node without a box, and for an edited one, which
+        carries its filler among its own Gaussians (:func:`core.render.objects.prepare_edited`)."""
+        from core.object_solids import solid_filler
+
+        hit = self._solid_cache.get(n.name)
+        if hit is not None and hit[0] == id(n.gaussians):
+            return hit[1]
+        solid = (solid_filler(n.gaussians.detach(), n.size) if n.size is not None and not n.edited
+                 else Gaussians.empty(n.gaussians.dtype))
+        self._solid_cache[n.name] = (id(n.gaussians), solid)
+        return solid
+
+    def solids_at(self, time: float, names) -> Gaussians | None:
+        """World-space interior fills (:meth:`node_solid`) of the nodes in ``names`` observed at
+        ``time`` seconds; None when there are none."""
+        parts = []
+        for n in self.nodes:
+            if n.name in names:
+                qt = n._key(0) if n.is_static else n.pose_at(time, self.times)  # as compose places it
+                if qt is not None:
+                    sol = self.node_solid(n)
+                    if sol.num:
+                        parts.append(transform_gaussians(sol, *(x.detach() for x in qt)))
+        if not parts:
+            return None
+        return Gaussians.cat(parts) if len(parts) > 1 else parts[0]
+
+    def _static_solids(self, exclude: frozenset[str]) -> Gaussians | None:
+        """World-space interior fills of the static nodes not in ``exclude`` (placed as
+        :meth:`_static_part` places them), or None."""
+        parts = []
+        for n in self.nodes:
+            if n.is_static and n.name not in exclude:
+                sol = self.node_solid(n)
+                if sol.num:
+                    parts.append(transform_gaussians(sol, *(x.detach() for x in n._key(0))))
+        if not parts:
+            return None
+        return Gaussians.cat(parts) if len(parts) > 1 else parts[0]
+
+    def shadow_nodes_at(self, time: float, names, solids: bool = False) -> Gaussians | None:
+        """What shadow rays see of the nodes in ``names`` at ``time`` seconds: :meth:`nodes_at`
+        plus, with ``solids``, their interior fills (:meth:`solids_at`); detached."""
+        parts = [g.detach() for g in (self.nodes_at(time, names), self.solids_at(time, names) if solids else None)
+                 if g is not None and g.num]
+        if not parts:
+            return None
+        return Gaussians.cat([p.to(parts[0].dtype) for p in parts]) if len(parts) > 1 else parts[0]
 
     def node(self, name: str) -> RigidNode:
         for n in self.nodes:
@@ -194,21 +247,26 @@ class SceneGraph:
             self._static_cache = out
         return out
 
-    def shadow_static(self) -> Gaussians:
-        """What static shadow rays see: :meth:`_static_part` plus :attr:`occluders` (detached)."""
+    def shadow_static(self, solids: bool = False) -> Gaussians:
+        """What static shadow rays see: :meth:`_static_part` plus :attr:`occluders` and, with
+        ``solids``, the static nodes' interior fills (:meth:`node_solid`); detached."""
         st = self._static_part().detach()
-        if self.occluders is None or self.occluders.num == 0:
+        extra = [self.occluders] if self.occluders is not None and self.occluders.num else []
+        if solids:
+            sol = self._static_solids(frozenset())
+            extra += [sol] if sol is not None else []
+        if not extra:
             return st
-        return Gaussians.cat([st, self.occluders.detach().to(st.dtype)])
+        return Gaussians.cat([st] + [e.detach().to(st.dtype) for e in extra])
 
     def edited_nodes(self) -> frozenset[str]:
         """Names of the nodes an object edit placed (:attr:`RigidNode.edited`)."""
         return frozenset(n.name for n in self.nodes if n.edited)
 
-    def shadow_static_except(self, names: frozenset[str]) -> Gaussians:
+    def shadow_static_except(self, names: frozenset[str], solids: bool = False) -> Gaussians:
         """:meth:`shadow_static` without the static nodes in ``names`` (detached, not cached)."""
         if not names:
-            return self.shadow_static()
+            return self.shadow_static(solids)
         parts = [self.background.detach()]
         for n in self.nodes:
             if n.is_static and n.name not in names:
@@ -216,6 +274,10 @@ class SceneGraph:
                 parts.append(transform_gaussians(n.gaussians, q, t).detach())
         if self.occluders is not None and self.occluders.num:
             parts.append(self.occluders.detach().to(self.background.dtype))
+        if solids:
+            sol = self._static_solids(names)
+            if sol is not None:
+                parts.append(sol.detach().to(self.background.dtype))
         return Gaussians.cat(parts) if len(parts) > 1 else parts[0]
 
     def nodes_at(self, time: float, names) -> Gaussians | None:
@@ -234,6 +296,7 @@ class SceneGraph:
     def invalidate(self) -> None:
         """Drop cached compositions (call after editing Gaussians in place)."""
         self._static_cache = None
+        self._solid_cache = {}
 
     def compose(self, time: float, *, hidden: set[str] | frozenset[str] = frozenset()) -> Gaussians:
         """World-space Gaussians of the whole scene at ``time`` seconds (nodes in ``hidden`` and

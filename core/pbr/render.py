@@ -192,6 +192,12 @@ class PBRSettings:
     """Kernel threads; 0 = every core this process may use."""
     trace: TraceSettings = field(default_factory=lambda: TraceSettings(leaf_size=16))
     """Shadow-ray settings (offset along the ray, early stop, BVH leaf size)."""
+    object_solids: bool = False
+    """Shadow rays of a :class:`core.scene_graph.SceneGraph` also meet each tracked object's
+    inside, filled with opaque Gaussians (:meth:`core.scene_graph.SceneGraph.node_solid`): a
+    reconstructed car is a thin shell of splats that lets a fifth of the light through. Off here
+    and in the pbr and joint stages; on in the relight scenarios and the evaluation
+    (:attr:`core.render.scenario.Scenario.object_solids`)."""
 
     def __post_init__(self) -> None:
         def is_int(v, lo, hi):
@@ -228,7 +234,7 @@ class PBRSettings:
         for name, ok in checks.items():
             if not ok:
                 raise ConfigError(f"{name}: invalid value {getattr(self, name)!r}")
-        for name in ("skip_sky", "cull_lights", "adaptive", "reuse_visibility", "shadows"):
+        for name in ("skip_sky", "cull_lights", "adaptive", "reuse_visibility", "shadows", "object_solids"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"{name}: expected a bool, got {getattr(self, name)!r}")
         if not isinstance(self.trace, TraceSettings):
@@ -694,12 +700,26 @@ class ClipRenderer:
         self.objects = (self.graph.edited_nodes() if self.graph is not None and self.settings.shadows
                         and ts.t_min_objects is not None and ts.t_min_objects != ts.t_min else frozenset())
         # static shadow casters: the static part plus the graph's shadow-only occluders
-        shadow_static = (self.graph.shadow_static_except(self.objects) if self.graph is not None else self.static) \
-            if self.static_reuse else None
+        sol = self.settings.object_solids
+        shadow_static = (self.graph.shadow_static_except(self.objects, sol) if self.graph is not None
+                         else self.static) if self.static_reuse else None
         self.hook = _clip_hook.get()
         self.context = (self.hook.context(env, self.settings, shadow_static) if self.hook is not None
                         else FrameContext(env, self.settings, static_gaussians=shadow_static))
         self.setup_seconds = time.perf_counter() - t0
+
+    def _with_shadow_only(self, g: Gaussians, time_s: float, names) -> Gaussians:
+        """``g`` (composed at ``time_s``) plus the graph's occluders and, with
+        :attr:`PBRSettings.object_solids`, the interior fills of the nodes in ``names``."""
+        parts = [g]
+        occ = self.graph.occluders
+        if occ is not None and occ.num:
+            parts.append(occ.detach().to(g.dtype))
+        if self.settings.object_solids:
+            sol_g = self.graph.solids_at(time_s, names)
+            if sol_g is not None:
+                parts.append(sol_g.detach().to(g.dtype))
+        return Gaussians.cat(parts) if len(parts) > 1 else g
 
     def render(self, camera, time_s: float = 0.0, frame_index: int = 0) -> PBRResult:
         cam = Camera.of(camera)
@@ -715,25 +735,31 @@ class ClipRenderer:
             if not self.settings.shadows:
                 pass  # every light sample is visible: no BVH
             elif self.objects:
-                obj_g = self.graph.nodes_at(float(time_s), self.objects)
+                sol = self.settings.object_solids
+                obj_g = self.graph.shadow_nodes_at(float(time_s), self.objects, sol)
                 if obj_g is not None:
                     obj = GaussianTracer.from_gaussians(obj_g, self.settings.trace, objects=True)
                 if self.static_reuse:
                     movers = [n.name for n in self.graph.nodes if not n.is_static and n.name not in self.objects]
-                    mov_g = self.graph.nodes_at(float(time_s), movers)
+                    mov_g = self.graph.shadow_nodes_at(float(time_s), movers, sol)
                 else:
-                    occ = self.graph.occluders
                     rest = self.graph.compose(float(time_s), hidden=self.objects).detach()
-                    mov_g = Gaussians.cat([rest, occ.detach().to(rest.dtype)]) if occ is not None and occ.num else rest
+                    others = [n.name for n in self.graph.nodes if n.name not in self.objects]
+                    mov_g = self._with_shadow_only(rest, float(time_s), others)
                 if mov_g is not None and mov_g.num:
                     dyn = GaussianTracer.from_gaussians(mov_g, self.settings.trace)
             elif self.static_reuse:
                 n_static = self.static.num if self.static is not None else 0
-                if g.num > n_static:
-                    dyn = GaussianTracer.from_gaussians(g.index(slice(n_static, None)), self.settings.trace)
+                movers = g.index(slice(n_static, None)) if g.num > n_static else None
+                if movers is not None and self.graph is not None and self.settings.object_solids:
+                    sol_g = self.graph.solids_at(float(time_s), [n.name for n in self.graph.nodes if not n.is_static])
+                    if sol_g is not None:
+                        movers = Gaussians.cat([movers, sol_g.detach().to(movers.dtype)])
+                if movers is not None:
+                    dyn = GaussianTracer.from_gaussians(movers, self.settings.trace)
             else:
-                occ = self.graph.occluders if self.graph is not None else None
-                gs = Gaussians.cat([g, occ.detach().to(g.dtype)]) if occ is not None and occ.num else g
+                gs = (self._with_shadow_only(g, float(time_s), [n.name for n in self.graph.nodes])
+                      if self.graph is not None else g)
                 dyn = GaussianTracer.from_gaussians(gs, self.settings.trace) if gs.num else None
             t_bvh = time.perf_counter() - t0
             out = rasterize_gaussians(g, cam, settings=self.raster_settings)

@@ -74,6 +74,9 @@ class EvalSettings:
     """The BRDF's masking term of the PBR renders (:attr:`core.render.scenario.Scenario.masking`)."""
     opaque_above: float = PRODUCT_OPAQUE_ABOVE
     """Surface pixels of the PBR renders (:attr:`core.render.scenario.Scenario.opaque_above`)."""
+    object_solids: bool = True
+    """Shadow rays meet the tracked objects' filled insides
+    (:attr:`core.render.scenario.Scenario.object_solids`)."""
     object_shadow_t_min_m: float = 0.05
     """The same for objects an edit placed (:attr:`core.render.scenario.Scenario.object_shadow_t_min_m`;
     the evaluation renders no edits, so only a request that passes edits sees it)."""
@@ -172,7 +175,7 @@ def evaluate_run(run_dir: str | Path, bundle=None, settings: EvalSettings | None
                       denoiser_fallback=None, normal_offset_m=s.normal_offset_m,
                       shadow_t_min_m=s.shadow_t_min_m, object_shadow_t_min_m=s.object_shadow_t_min_m,
                       indirect_bounces=s.indirect_bounces, diffuse=s.diffuse, masking=s.masking,
-                      opaque_above=s.opaque_above,
+                      opaque_above=s.opaque_above, object_solids=s.object_solids,
                       outputs=("png",))
         with tempfile.TemporaryDirectory(prefix="brdf-eval-") as tmp:
             r = render_scenario(graph, sc, tmp)

@@ -138,7 +138,7 @@ def _in_box_shadow(pts, light, centre, size):
 
 def test_a_filled_object_casts_a_solid_shadow_where_its_half_transparent_shell_does_not(street):
     from core.pbr.lights import PointLight
-    from core.render.objects import solid_filler
+    from core.object_solids import solid_filler
 
     graph, views = street
     node = graph.node("car0")

@@ -128,7 +128,8 @@ def test_nothing_for_ground_kerbs_or_an_empty_scene():
 @pytest.mark.parametrize("field,value", [("cell_m", 0.0), ("step_m", float("nan")), ("opacity", 1.0),
                                          ("min_count", 0), ("max_height_m", -1.0), ("layers", 0), ("layers", 2.0),
                                          ("inset_m", 0.0), ("layer_spacing_m", -0.1), ("fill_observed", 1), ("grow_behind", "yes"),
-                                         ("wall_tolerance_m", 0.0)])
+                                         ("wall_tolerance_m", 0.0), ("unseen_roof_radius_m", -1.0),
+                                         ("extend_m", float("inf"))])
 def test_settings_are_validated_naming_the_field(field, value):
     with pytest.raises(ConfigError, match=field):
         OccluderSettings(**{field: value})
@@ -254,3 +255,51 @@ def test_a_side_of_two_far_apart_columns_still_continues():
     occ = complete_occluders(G.cat([a, b]), path, OccluderSettings(max_height_m=6.0, extend_m=2.0, **UPWARD_ONLY))
     m = occ.means.numpy()
     assert occ.num > 0 and np.isfinite(m).all() and (m[:, 0] < 4.0).any() and (m[:, 0] > 6.0).any()
+
+
+def _column_tops(occ: Gaussians, x1: float = 30.0) -> np.ndarray:
+    """[x1 / 0.5] highest completed Gaussian per 0.5 m cell along x (the wall runs along x; 0 where
+    the column has none)."""
+    m = occ.means.numpy()
+    out = np.zeros(int(x1 / 0.5))
+    np.maximum.at(out, np.clip(np.floor(m[:, 0] / 0.5).astype(int), 0, len(out) - 1), m[:, 2])
+    return out
+
+
+def test_an_unseen_column_is_capped_at_the_sky_seen_roof_line_of_its_neighbours():
+    wall = _wall(x0=0.0, x1=30.0, z1=4.0)
+    x = np.arange(0.0, 30.0, 0.5)
+    path = [_view((x, 0.0, 1.5), (x + 10.0, 0.0, 1.5)) for x in (0.0, 1.0)]  # never sees through anything
+    # a frame from across the street saw sky above the far part of the wall (x ~ 19-31) only
+    far_sky = _view((25.0, -30.0, 9.0), (25.0, 5.0, 9.0), fov_deg=20.0, sky=True)
+    s = OccluderSettings(max_height_m=12.0, extend_m=0.0, **UPWARD_ONLY)
+    tops = _column_tops(complete_occluders(wall, [path[0], far_sky, path[1]], s))
+    assert tops[x >= 20.0].max() < 5.0  # the seen roof line
+    assert tops[(x >= 6.0) & (x <= 15.0)].max() < 5.0  # unseen, capped by its neighbours
+    assert tops[x < 3.0].min() > 11.0  # unseen, no sky-seen column within 15 m
+    off = _column_tops(complete_occluders(wall, [path[0], far_sky, path[1]],
+                                          OccluderSettings(max_height_m=12.0, extend_m=0.0, unseen_roof_radius_m=0.0,
+                                                           **UPWARD_ONLY)))
+    assert off[x < 15.0].min() > 11.0
+    # a column the depth test stopped (a window read as free space) is not a roof line
+    through = (far_sky[0], np.zeros_like(far_sky[1]), np.full_like(far_sky[2], 500.0))
+    carved = _column_tops(complete_occluders(wall, [path[0], through, path[1]], s))
+    assert carved[x >= 20.0].max() < 5.0
+    assert carved[(x >= 6.0) & (x <= 15.0)].min() > 11.0
+
+
+def test_continued_walls_can_take_the_sky_seen_roof_line_only():
+    wall = _wall(x0=0.0, x1=10.0, z1=4.0)
+    path = [_view((x, 0.0, 1.5), (x + 10.0, 0.0, 1.5)) for x in (0.0, 5.0)]
+    # one frame saw through the wall's upper part at a depth far behind it (a window's reflection
+    # read as free space): the columns stop there, but that is no roof line
+    through = _view((5.0, -30.0, 9.0), (5.0, 5.0, 9.0), fov_deg=20.0, depth=500.0)
+    views = [path[0], through, path[1]]
+    s_all = OccluderSettings(max_height_m=12.0, extend_m=4.0, **UPWARD_ONLY)
+    s_sky = OccluderSettings(max_height_m=12.0, extend_m=4.0, continued_sky_roof=True, **UPWARD_ONLY)
+    low = complete_occluders(wall, views, s_all).means.numpy()
+    high = complete_occluders(wall, views, s_sky).means.numpy()
+    # every stopped column counts: the continued wall is as low as the depth-stopped roof line;
+    # sky only: no side showed a sky roof line, so the continuation goes to max_height_m
+    assert low[low[:, 0] < -1.6, 2].max() < 5.0
+    assert high[high[:, 0] < -1.6, 2].max() > 11.0
