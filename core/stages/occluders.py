@@ -118,10 +118,10 @@ class OccluderSettings:
     roof line. Before this, on the development street dev1 the uncapped columns stood 17-18 m
     (p90) where the true roofs are 10.6-14.6 m, and the walls across the street came out 0.20 too
     shadowed under the capture map (``visibility_dev1.json``). Measured with pbr and joint re-run
-    on the same volume2, quick profile (``benchmarks/results/occluders_roof/``): relit 20.48 ->
-    20.67 dB (default scene), 21.34 -> 21.62 (dev1), re-render 19.75 -> 19.75 and 21.23 -> 21.22;
-    the columns' mean absolute error against the true building heights 3.79 -> 3.57 m and
-    4.14 -> 3.27 m."""
+    on the same volume2, quick profile, development scenes (``benchmarks/results/occluders_roof/``):
+    relit 20.48 -> 20.67 dB (default scene), 21.34 -> 21.62 (dev1), 22.33 -> 22.65 (dev2);
+    re-render 19.75 -> 19.75, 21.23 -> 21.22, 21.06 -> 21.35; the columns' mean absolute error
+    against the true building heights 3.79 -> 3.57, 4.14 -> 3.27, 4.67 -> 3.80 m."""
     continued_sky_roof: bool = False
     """A continued wall (``extend_m``) is as tall as the median roof line of its side's columns
     that a frame saw end against the sky (True), or of every column something stopped (False:
