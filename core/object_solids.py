@@ -118,5 +118,4 @@ def solid_filler(gaussians, size: Sequence[float], *, voxel_m: float = 0.15, cle
                                     near(act["albedo"]), near(act["roughness"]), near(act["metallic"]))
 
 
-
 __all__ = ["solid_filler"]

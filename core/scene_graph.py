@@ -159,7 +159,7 @@ class SceneGraph:
         #: Shadow-only Gaussians (world frame): cast shadows in the PBR pass, never rasterized
         #: (:mod:`core.stages.occluders`: facades completed above the captured field of view).
         self.occluders: Gaussians | None = None
-        self._solid_cache: dict[str, tuple[int, Gaussians]] = {}
+        self._solid_cache: dict[str, tuple[Gaussians, Gaussians]] = {}
 
     def node_solid(self, n: RigidNode) -> Gaussians:
         """Shadow-only Gaussians filling node ``n``'s inside, in its own frame
@@ -169,11 +169,11 @@ class SceneGraph:
         from core.object_solids import solid_filler
 
         hit = self._solid_cache.get(n.name)
-        if hit is not None and hit[0] == id(n.gaussians):
+        if hit is not None and hit[0] is n.gaussians:
             return hit[1]
         solid = (solid_filler(n.gaussians.detach(), n.size) if n.size is not None and not n.edited
                  else Gaussians.empty(n.gaussians.dtype))
-        self._solid_cache[n.name] = (id(n.gaussians), solid)
+        self._solid_cache[n.name] = (n.gaussians, solid)  # the object itself: an id() can be reused
         return solid
 
     def solids_at(self, time: float, names) -> Gaussians | None:
