@@ -128,7 +128,7 @@ def test_nothing_for_ground_kerbs_or_an_empty_scene():
 @pytest.mark.parametrize("field,value", [("cell_m", 0.0), ("step_m", float("nan")), ("opacity", 1.0),
                                          ("min_count", 0), ("max_height_m", -1.0), ("layers", 0), ("layers", 2.0),
                                          ("inset_m", 0.0), ("layer_spacing_m", -0.1), ("fill_observed", 1), ("grow_behind", "yes"),
-                                         ("wall_tolerance_m", 0.0), ("unseen_roof_radius_m", -1.0),
+                                         ("wall_tolerance_m", 0.0), ("unseen_roof_radius_m", -1.0), ("wall_line_sky_only", 1),
                                          ("extend_m", float("inf"))])
 def test_settings_are_validated_naming_the_field(field, value):
     with pytest.raises(ConfigError, match=field):
@@ -303,3 +303,25 @@ def test_continued_walls_can_take_the_sky_seen_roof_line_only():
     # sky only: no side showed a sky roof line, so the continuation goes to max_height_m
     assert low[low[:, 0] < -1.6, 2].max() < 5.0
     assert high[high[:, 0] < -1.6, 2].max() > 11.0
+
+
+def test_wall_line_columns_can_be_carved_by_sky_pixels_only():
+    # a facade at y = 5 and a tree-like patch 2.5 m in front of it; the frames' rendered depth lies
+    # far behind both everywhere (a window's reflection read as free space), and no pixel is sky
+    wall = _wall(x0=0.0, x1=20.0, y=5.0, z1=4.0)
+    tree = _flat(np.array([[10.0 + dx, 2.5, z] for dx in (0.1, 0.3) for z in np.arange(0.2, 3.0, 0.2)]),
+                 (0.0, -1.0, 0.0), half=0.2)
+    scene = Gaussians.cat([wall, tree])
+    views = [_view((x, 0.0, 1.5), (x + 10.0, 3.0, 4.0), w=64, h=48, depth=500.0) for x in (-20.0, -15.0, -10.0)]
+    base = dict(max_height_m=12.0, extend_m=0.0, unseen_roof_radius_m=0.0, **UPWARD_ONLY)
+    free = complete_occluders(scene, [], OccluderSettings(**base))
+    depth_test = complete_occluders(scene, views, OccluderSettings(**base))
+    sky_only = complete_occluders(scene, views, OccluderSettings(wall_line_sky_only=True, **base))
+    on_tree = lambda g: int((g.means[:, 1].numpy() < 4.0).sum())  # noqa: E731
+    assert on_tree(free) > 0
+    # the depth test stops the columns it sees through, the wall's and the tree's
+    assert depth_test.num < free.num and on_tree(depth_test) < on_tree(free)
+    # on the wall line only the sky carves (none here): the wall grows as if unseen, and the tree,
+    # off the line, keeps the depth test
+    assert sky_only.num - on_tree(sky_only) == free.num - on_tree(free)
+    assert on_tree(sky_only) == on_tree(depth_test)
