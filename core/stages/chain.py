@@ -181,7 +181,7 @@ def _profile_table() -> dict[str, dict[str, Any]]:
             "volume2": VolumeSettings(iterations=30_000, densify_from=10**9, densify_until=0, init_from_graph=True,
                                       density=DensityConfig(max_gaussians=2_000_000)),
             "pbr": PBRStageConfig(iterations=5000, rays_per_pixel=512, max_frames=200),
-            "joint": JointSettings(iterations=20_000, rays_per_pixel=512, max_frames=200),
+            "joint": JointSettings(iterations=20_000, rays_per_pixel=512, max_frames=200, pixels=2048, lambda_pbr=0.1),
         },
     }
 
