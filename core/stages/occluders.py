@@ -199,9 +199,9 @@ def facade_columns(background: Gaussians, s: OccluderSettings) -> tuple[np.ndarr
 def _grow(centres, starts, caps, views, s: OccluderSettings, margins=None):
     """Grow each column from ``starts`` [C] up in ``step_m`` steps to ``caps`` [C] (metres), up to
     its first step some view saw through (``margins`` [C]: each column's depth-test margin,
-    metres, inf = sky pixels only; default ``s.depth_margin_m``). Returns (points [P, 3], column index [P], roof [C]: the
-    height where a view saw through the column, NaN where nothing did, sky [C] bool: it was a sky
-    pixel that stopped the column, not the depth test)."""
+    metres, inf = sky pixels only; default ``s.depth_margin_m``). Returns (points [P, 3], column
+    index [P], roof [C]: the height where a view saw through the column, NaN where nothing did,
+    sky [C] bool: it was a sky pixel that stopped the column, not the depth test)."""
     if not len(centres):
         return np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros(0), np.zeros(0, bool)
     n_steps = max(int(np.floor((float(np.max(caps)) - float(np.min(starts))) / s.step_m)) + 1, 0)
@@ -245,10 +245,7 @@ def _continued_columns(centres, bottoms, normals, roof, sky_roof, views, s: Occl
             continue
         roofs = roof[on & np.isfinite(roof) & (sky_roof if s.continued_sky_roof else True)]
         cap = float(np.median(roofs)) if len(roofs) else s.max_height_m
-        dist = np.abs(offset - np.median(offset[on]))
-        # the side's wall line; with an even count split far apart the median lies between
-        # columns, and the nearest ones stand for it
-        wall = on & (dist <= max(s.wall_tolerance_m, float(dist[on].min())))
+        wall = _side_wall_line(offset, on, s)
         for end, sign in ((along[wall].min(), -1.0), (along[wall].max(), 1.0)):
             sl = wall & (np.abs(along - end) <= s.cell_m)  # the wall's last seen slice
             for shift in steps:
@@ -274,9 +271,18 @@ def _path_frame(views) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     return pos[0, :2], d, np.array([-d[1], d[0]])
 
 
+def _side_wall_line(offset: np.ndarray, on: np.ndarray, s: OccluderSettings) -> np.ndarray:
+    """[C] bool: the columns of one side (``on``, non-empty) within ``wall_tolerance_m`` of that
+    side's wall line, the median of their lateral ``offset`` [C] from the capture path (metres);
+    with an even count split far apart the median lies between columns, and the nearest ones
+    stand for it."""
+    dist = np.abs(offset - np.median(offset[on]))
+    return on & (dist <= max(s.wall_tolerance_m, float(dist[on].min())))
+
+
 def _on_wall_line(centres, views, s: OccluderSettings) -> np.ndarray:
-    """[C] bool: the column lies within ``wall_tolerance_m`` of its side's wall line (the median
-    distance of that side's columns from the capture path); all False without a path."""
+    """[C] bool: the column lies on its side's wall line (:func:`_side_wall_line`); all False
+    without a capture path."""
     frame = _path_frame(views)
     out = np.zeros(len(centres), bool)
     if frame is None or not len(centres):
@@ -286,7 +292,7 @@ def _on_wall_line(centres, views, s: OccluderSettings) -> np.ndarray:
     for sd in (-1.0, 1.0):
         on = np.sign(offset) == sd
         if on.any():
-            out |= on & (np.abs(offset - np.median(offset[on])) <= s.wall_tolerance_m)
+            out |= _side_wall_line(offset, on, s)
     return out
 
 
