@@ -18,7 +18,8 @@ Gaussian of ``--sigma`` pixels: the low-pass error is shading, the rest detail).
 each rendered by the PBR stage's pass on the stage's training pixels (the run's ``--stage``
 G-buffers, its occluders or the oracle's, ``--albedo gt`` for the true albedo); the grid-searched
 L1-optimal gains of the two parts, and the ratio capture / render (linear) per quintile of the
-capture's shading (radiance / true albedo) on the ground and on walls. Gains of 1 and ratios of 1
+capture's shading (radiance / true albedo) on the ground, on walls (true roughness >= 0.25) and on
+glass (below). Gains of 1 and ratios of 1
 mean the reconstruction's geometry, materials and shadows explain the capture under the true map.
 
 ``visibility``: the sun's visibility (the true sun direction) at the training frames' surface
@@ -31,7 +32,7 @@ the run (the prior, the pbr stage's, the joint stage's).
 
 ``albedo``: the reconstruction's albedo over the true one (median, non-metallic unclipped pixels of
 every 4th training frame) per quintile of the capture's shading (radiance / true albedo), on the
-ground and on walls: a ratio that rises with the shading is lighting baked into the albedo.
+ground, on walls (true roughness >= 0.25) and on glass: a ratio that rises with the shading is lighting baked into the albedo.
 """
 
 from __future__ import annotations
@@ -165,7 +166,7 @@ def gains(run_dir: str, stage: str, occluders: str, albedo: str, bounces: int | 
     ps = cfg.pbr_settings(rays_per_pixel=64, exposure=1.0, gamma=1.0, threads=2, seed=0)
     m = b.manifest
     hdr = {k: [] for k in parts}
-    tgt, nrm, alb = [], [], []
+    tgt, nrm, alb, rgh = [], [], [], []
     gen = torch.Generator().manual_seed(0)
     for i in range(0, len(frames), every):
         f, fr = frames[i], train[i]
@@ -181,8 +182,9 @@ def gains(run_dir: str, stage: str, occluders: str, albedo: str, bounces: int | 
         tgt.append(f.target[idx].double().numpy())
         nrm.append(gt["normal"].reshape(-1, 3)[idx.numpy()])
         alb.append(gt["albedo"].reshape(-1, 3)[idx.numpy()])
+        rgh.append(gt["roughness"].reshape(-1)[idx.numpy()])
     hs, hk, t = np.concatenate(hdr["sun"]), np.concatenate(hdr["sky"]), np.concatenate(tgt)
-    nrm, alb = np.concatenate(nrm), np.concatenate(alb)
+    nrm, alb, rgh = np.concatenate(nrm), np.concatenate(alb), np.concatenate(rgh)
     best = (np.inf, 1.0, 1.0)
     for gs in np.arange(0.2, 2.001, 0.05):
         for gk in np.arange(0.4, 2.001, 0.05):
@@ -197,8 +199,11 @@ def gains(run_dir: str, stage: str, occluders: str, albedo: str, bounces: int | 
     out = {"stage": stage, "occluders": occluders, "albedo": albedo, "indirect_bounces": cfg.indirect_bounces,
            "samples": int(len(t)), "l1_at_true_map": float(np.abs(p1 - t).mean()), "l1_best": best[0],
            "gain_sun": round(best[1], 2), "gain_sky": round(best[2], 2), "capture_over_render_by_shading_quintile": {}}
-    for name, msk in (("ground", nrm[:, 2] > 0.8), ("wall", np.abs(nrm[:, 2]) < 0.3)):
-        ok = msk & (t.max(-1) < 0.97) & (alb.mean(-1) > 0.04)
+    wall = np.abs(nrm[:, 2]) < 0.3
+    for name, msk in (("ground", nrm[:, 2] > 0.8), ("wall", wall & (rgh >= 0.25)), ("glass", wall & (rgh < 0.25))):
+        ok = msk & (t.max(-1) < 0.97) & (alb.mean(-1) > 0.01)
+        if ok.sum() < 50:
+            continue
         q = np.quantile(shade[ok], [0, 0.2, 0.4, 0.6, 0.8, 1.0])
         ratio = lin_t.mean(-1) / np.maximum(lin_p.mean(-1), 1e-6)
         out["capture_over_render_by_shading_quintile"][name] = [
@@ -289,11 +294,14 @@ def albedo_bake(run_dir: str, stages: list[str]) -> dict:
                       & (b.load_image(f).max(-1) < 0.97) & (gt["metallic"].reshape(h, w) < 0.1))
                 shade.append(img.mean(-1)[ok] / ga.mean(-1)[ok])
                 ratio.append(a.mean(-1)[ok] / ga.mean(-1)[ok])
-                kind.append(np.where(gn[..., 2] > 0.8, 0, np.where(np.abs(gn[..., 2]) < 0.3, 1, 2))[ok])
+                glass = gt["roughness"].reshape(h, w) < 0.25
+                kind.append(np.where(gn[..., 2] > 0.8, 0, np.where(np.abs(gn[..., 2]) < 0.3, np.where(glass, 3, 1), 2))[ok])
         shade, ratio, kind = map(np.concatenate, (shade, ratio, kind))
         row = {}
-        for name, k in (("ground", 0), ("wall", 1)):
+        for name, k in (("ground", 0), ("wall", 1), ("glass", 3)):
             s_, r_ = shade[kind == k], ratio[kind == k]
+            if len(s_) < 50:
+                continue
             q = np.quantile(s_, [0, 0.2, 0.4, 0.6, 0.8, 1.0])
             row[name] = {"shading_quintile_edges": np.round(q, 3).tolist(),
                          "albedo_over_true": [round(float(np.median(r_[(s_ >= q[j]) & (s_ <= q[j + 1])])), 3)
