@@ -8,6 +8,7 @@ meshes as "oracle" occluders), which the product never does.
     python benchmarks/diagnose_rerender.py visibility RUN [--occluders oracle]
     python benchmarks/diagnose_rerender.py lighting RUN           # sun and sky irradiance of the run's maps
     python benchmarks/diagnose_rerender.py albedo RUN [--stages volume2,joint]   # shading baked into the albedo
+    python benchmarks/diagnose_rerender.py bounce RUN             # is the missing light interreflection?
 
 ``regions``: the evaluation's re-render (64 rays, OIDN, ``core.synth.evaluate``'s settings) and the
 novel views against the test frames, split by the true G-buffers into sky, ground (n_z > 0.8),
@@ -33,6 +34,12 @@ the run (the prior, the pbr stage's, the joint stage's).
 ``albedo``: the reconstruction's albedo over the true one (median, non-metallic unclipped pixels of
 every 4th training frame) per quintile of the capture's shading (radiance / true albedo), on the
 ground, on walls (true roughness >= 0.25) and on glass: a ratio that rises with the shading is lighting baked into the albedo.
+
+``bounce``: the true albedo, the true map and the true meshes as occluders, the PBR pass with
+direct light only, plus a bounce that takes the *capture's own radiance* where each of 24 cosine
+rays per pixel meets the frame's rendered depth (screen space; a ray the true meshes block off
+screen takes the frame's mean radiance): capture / render per shading quintile with and without
+that bounce. If the missing light were interreflection this would bring the ratios to 1.
 """
 
 from __future__ import annotations
@@ -310,9 +317,80 @@ def albedo_bake(run_dir: str, stages: list[str]) -> dict:
     return out
 
 
+def bounce_check(run_dir: str, rays: int, every: int) -> dict:
+    """The ``bounce`` check (module docstring)."""
+    from lighting_harness import occluder_tracer
+
+    K = rays
+    out: dict = {"rays": K, "hits": []}
+    b, g, cfg, frames, train = _stage_frames(run_dir, 'volume2', 'oracle')
+    cfg = dataclasses.replace(cfg, indirect_bounces=0)
+    env = EnvironmentMap(torch.from_numpy(_true_map(b)))
+    ps = cfg.pbr_settings(rays_per_pixel=64, exposure=1.0, gamma=1.0, threads=2, seed=0)
+    orc = occluder_tracer(b, 'oracle')
+    m = b.manifest; rng = np.random.default_rng(0); gen = torch.Generator().manual_seed(0)
+    T, D, I, N, A, R = [], [], [], [], [], []
+    for i in range(0, len(frames), every):
+        f, fr = frames[i], train[i]; gt = b.load_ground_truth(fr); H, W = f.camera.height, f.camera.width
+        o = f.gbuf['opacity']; f.gbuf['albedo'] = torch.from_numpy(gt['albedo'].reshape(H, W, 3)).to(o.dtype) * o
+        idx = f.nonsky[torch.randperm(f.nonsky.numel(), generator=gen)[:3000]]
+        r = render_pbr(f.gbuf, f.camera, env, settings=ps, tracers=f.tracers, pixels=idx, generator=torch.Generator().manual_seed(1))
+        direct = r.hdr.detach().double().numpy().reshape(-1, 3)
+        cap = (b.load_image(fr).reshape(-1, 3).astype(np.float64) ** m.ldr_gamma) / m.ldr_exposure
+        dep = (f.gbuf['depth'].reshape(-1).double() / o.reshape(-1).double().clamp_min(1e-3)).numpy()
+        dep[o.reshape(-1).numpy() < 0.5] = np.inf
+        n = f.gbuf['normal'].reshape(-1, 3).double().numpy(); n /= np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-6)
+        rays = f.camera.ray_directions().reshape(-1, 3); pose = f.camera.pose_numpy(); R_, t_ = pose[:3, :3], pose[:3, 3]
+        pts = t_ + rays * (np.where(np.isfinite(dep), dep, 0) / (rays @ pose[:3, 2]))[:, None]
+        sel = idx.numpy(); P = pts[sel]; Nn = n[sel]
+        # cosine directions
+        u1, u2 = rng.random((len(sel), K)), rng.random((len(sel), K))
+        rr, ph = np.sqrt(u1), 2 * np.pi * u2
+        loc = np.stack([rr * np.cos(ph), rr * np.sin(ph), np.sqrt(1 - u1)], -1)
+        tmp = np.where(np.abs(Nn[:, 2:3]) < 0.9, np.array([0, 0, 1.0]), np.array([1.0, 0, 0]))
+        tx = np.cross(tmp, Nn); tx /= np.linalg.norm(tx, axis=-1, keepdims=True); ty = np.cross(Nn, tx)
+        wi = loc[..., :1] * tx[:, None] + loc[..., 1:2] * ty[:, None] + loc[..., 2:3] * Nn[:, None]
+        org = P[:, None] + 0.1 * Nn[:, None]
+        Lhit = np.zeros((len(sel), K, 3)); status = np.zeros((len(sel), K), int)  # 0 open, 1 hit on screen, 2 undecided
+        steps = np.concatenate([np.linspace(0.15, 2, 10), np.linspace(2.3, 25, 40)])
+        done = np.zeros((len(sel), K), bool)
+        for s in steps:
+            q = org + wi * s
+            pc = (q - t_) @ R_; z = pc[..., 2]
+            ok = (z > 0.1) & ~done
+            u = np.where(ok, f.camera.fx * pc[..., 0] / np.where(ok, z, 1) + f.camera.cx, -1)
+            v = np.where(ok, f.camera.fy * pc[..., 1] / np.where(ok, z, 1) + f.camera.cy, -1)
+            ins = ok & (u >= 0) & (u < W) & (v >= 0) & (v < H)
+            pix = np.where(ins, v.astype(int).clip(0, H - 1) * W + u.astype(int).clip(0, W - 1), 0)
+            zb = dep[pix]
+            hit = ins & (z > zb + 0.05) & (z < zb + 1.5)
+            Lhit[hit] = cap[pix[hit]]; status[hit] = 1; done |= hit
+        # blocked but not found on screen: oracle says blocked -> frame mean of the capture (non-sky)
+        blocked = orc(np.repeat(org, K, 0).reshape(-1, 3), wi.reshape(-1, 3)).reshape(len(sel), K) < 0.5
+        fallback = blocked & ~done
+        meanL = cap[np.isfinite(dep)].mean(0)
+        Lhit[fallback] = meanL
+        # a screen hit the oracle calls unblocked is sky: drop it (the direct term has the sky)
+        Lhit[done & ~blocked] = 0
+        alb = gt['albedo'].reshape(-1, 3)[sel]; met = gt['metallic'].reshape(-1)[sel]
+        ind = (1 - met)[:, None] * alb * Lhit.mean(1)
+        T.append(cap[sel]); D.append(direct); I.append(ind); N.append(gt['normal'].reshape(-1, 3)[sel]); A.append(alb); R.append(gt['roughness'].reshape(-1)[sel])
+        out["hits"].append({"frame": i, "on_screen": round(float(done.mean()), 3), "off_screen_blocked": round(float(fallback.mean()), 3)})
+    T, D, I, N, A, R = map(np.concatenate, (T, D, I, N, A, R))
+    shade = T.mean(-1) / np.maximum(A.mean(-1), 1e-3)
+    wall = np.abs(N[:, 2]) < 0.3
+    for nm, msk in (('ground', N[:, 2] > 0.8), ('wall', wall & (R >= 0.25))):
+        ok = msk & (T.max(-1) < 0.9) & (A.mean(-1) > 0.04)
+        q = np.quantile(shade[ok], [0, .2, .4, .6, .8, 1])
+        for lab, pred in (('direct only', D), ('direct + ssgi bounce', D + I)):
+            rat = T.mean(-1) / np.maximum(pred.mean(-1), 1e-6)
+            out.setdefault(nm, {})[lab] = [round(float(np.median(rat[ok & (shade >= q[j]) & (shade <= q[j + 1])])), 3) for j in range(5)]
+
+    return out
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("what", choices=["regions", "gains", "visibility", "lighting", "albedo"])
+    ap.add_argument("what", choices=["regions", "gains", "visibility", "lighting", "albedo", "bounce"])
     ap.add_argument("run")
     ap.add_argument("--stage", default="volume2", help="the graph whose G-buffers the PBR pass shades (gains, visibility)")
     ap.add_argument("--occluders", default="run", choices=["run", "oracle"])
@@ -329,6 +407,8 @@ def main() -> int:
         res = gains(a.run, a.stage, a.occluders, a.albedo, a.bounces, a.every, a.pixels)
     elif a.what == "visibility":
         res = visibility(a.run, a.stage, a.occluders, a.every)
+    elif a.what == "bounce":
+        res = bounce_check(a.run, 24, a.every)
     elif a.what == "albedo":
         res = albedo_bake(a.run, [x for x in a.stages.split(",") if x])
     else:
