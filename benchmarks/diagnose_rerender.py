@@ -142,12 +142,12 @@ def regions(run_dir: str, sigma: float) -> dict:
     return out
 
 
-def _stage_frames(run_dir: str, stage: str, occluders: str):
+def _stage_frames(run_dir: str, stage: str, occluders: str, diffuse: str | None = None):
     from core.stages.pbr import _frames
 
     b = open_bundle(RunDir(run_dir).scene_path())
     g = SceneGraph.load(Path(run_dir) / stage / "checkpoint" / "scene_graph.pt")
-    if occluders == "oracle":
+    if occluders in ("oracle", "oracle_only"):
         from lighting_harness import ORACLE_EDGE_REFINE, ORACLE_GAUSSIANS, ORACLE_MAX_SPACING_M
         from core.synth.oracle import OracleSettings, street_scene_graph
         from core.synth.prepare import synth_config_of
@@ -155,15 +155,20 @@ def _stage_frames(run_dir: str, stage: str, occluders: str):
         st = OracleSettings(max_spacing=ORACLE_MAX_SPACING_M, edge_refine=ORACLE_EDGE_REFINE, thin_slivers=True)
         og, _, _ = street_scene_graph(synth_config_of(b), (0,), settings=st, budget=int(ORACLE_GAUSSIANS))
         g.occluders = og._static_part().detach().to(g.occluders.means.dtype)
+        if occluders == "oracle_only":  # shadow rays meet the true meshes alone, not the reconstruction
+            g.shadow_static = lambda: g.occluders
     cfg = profile_settings("quick", "pbr")
+    if diffuse is not None:
+        cfg = dataclasses.replace(cfg, diffuse=diffuse)
     frames, _ = _frames(g, b, cfg)
     train = sorted(b.frames("train"), key=lambda f: (f.time_index, f.id))
     pick = np.unique(np.linspace(0, len(train) - 1, min(cfg.max_frames, len(train))).round().astype(int))
     return b, g, cfg, frames, [train[int(i)] for i in pick]
 
 
-def gains(run_dir: str, stage: str, occluders: str, albedo: str, bounces: int | None, every: int, pixels: int) -> dict:
-    b, _g, cfg, frames, train = _stage_frames(run_dir, stage, occluders)
+def gains(run_dir: str, stage: str, occluders: str, albedo: str, bounces: int | None, every: int, pixels: int,
+          diffuse: str | None = None) -> dict:
+    b, _g, cfg, frames, train = _stage_frames(run_dir, stage, occluders, diffuse)
     if bounces is not None:
         cfg = dataclasses.replace(cfg, indirect_bounces=bounces)
     true_map = _true_map(b)
@@ -204,6 +209,7 @@ def gains(run_dir: str, stage: str, occluders: str, albedo: str, bounces: int | 
     lin_p = hs + hk
     shade = lin_t.mean(-1) / np.maximum(alb.mean(-1), 1e-3)
     out = {"stage": stage, "occluders": occluders, "albedo": albedo, "indirect_bounces": cfg.indirect_bounces,
+           "diffuse": cfg.diffuse,
            "samples": int(len(t)), "l1_at_true_map": float(np.abs(p1 - t).mean()), "l1_best": best[0],
            "gain_sun": round(best[1], 2), "gain_sky": round(best[2], 2), "capture_over_render_by_shading_quintile": {}}
     wall = np.abs(nrm[:, 2]) < 0.3
@@ -393,7 +399,10 @@ def main() -> int:
     ap.add_argument("what", choices=["regions", "gains", "visibility", "lighting", "albedo", "bounce"])
     ap.add_argument("run")
     ap.add_argument("--stage", default="volume2", help="the graph whose G-buffers the PBR pass shades (gains, visibility)")
-    ap.add_argument("--occluders", default="run", choices=["run", "oracle"])
+    ap.add_argument("--occluders", default="run", choices=["run", "oracle", "oracle_only"],
+                    help="the run's completed facades, the true meshes in their place, or the true meshes alone "
+                         "(without the reconstruction's Gaussians) as shadow casters")
+    ap.add_argument("--diffuse", default=None, choices=["lambert", "burley"], help="diffuse lobe (gains; default the stage's)")
     ap.add_argument("--albedo", default="run", choices=["run", "gt"])
     ap.add_argument("--bounces", type=int, default=None, help="indirect bounces (default: the pbr stage's)")
     ap.add_argument("--every", type=int, default=3, help="every this many of the stage's training frames")
@@ -404,7 +413,7 @@ def main() -> int:
     if a.what == "regions":
         res = regions(a.run, a.sigma)
     elif a.what == "gains":
-        res = gains(a.run, a.stage, a.occluders, a.albedo, a.bounces, a.every, a.pixels)
+        res = gains(a.run, a.stage, a.occluders, a.albedo, a.bounces, a.every, a.pixels, a.diffuse)
     elif a.what == "visibility":
         res = visibility(a.run, a.stage, a.occluders, a.every)
     elif a.what == "bounce":
