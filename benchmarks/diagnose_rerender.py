@@ -183,9 +183,12 @@ def gains(run_dir: str, stage: str, occluders: str, albedo: str, bounces: int | 
     for i in range(0, len(frames), every):
         f, fr = frames[i], train[i]
         gt = b.load_ground_truth(fr)
-        if albedo == "gt":
+        if albedo in ("gt", "gt_materials"):
             o = f.gbuf["opacity"]
             f.gbuf["albedo"] = torch.from_numpy(gt["albedo"].reshape(*o.shape[:2], 3)).to(o.dtype) * o
+            if albedo == "gt_materials":  # roughness and metallic too
+                for k in ("roughness", "metallic"):
+                    f.gbuf[k] = torch.from_numpy(gt[k].reshape(*o.shape[:2], 1)).to(o.dtype) * o
         idx = f.nonsky[torch.randperm(f.nonsky.numel(), generator=gen)[:pixels]]
         for k, env in envs.items():
             r = render_pbr(f.gbuf, f.camera, env, settings=ps, tracers=f.tracers, pixels=idx,
@@ -403,7 +406,8 @@ def main() -> int:
                     help="the run's completed facades, the true meshes in their place, or the true meshes alone "
                          "(without the reconstruction's Gaussians) as shadow casters")
     ap.add_argument("--diffuse", default=None, choices=["lambert", "burley"], help="diffuse lobe (gains; default the stage's)")
-    ap.add_argument("--albedo", default="run", choices=["run", "gt"])
+    ap.add_argument("--albedo", default="run", choices=["run", "gt", "gt_materials"],
+                    help="the reconstruction's albedo, the true albedo, or the true albedo, roughness and metallic (gains)")
     ap.add_argument("--bounces", type=int, default=None, help="indirect bounces (default: the pbr stage's)")
     ap.add_argument("--every", type=int, default=3, help="every this many of the stage's training frames")
     ap.add_argument("--pixels", type=int, default=3000, help="pixels per frame (gains)")
