@@ -71,6 +71,8 @@ from core.scene_graph import SceneGraph  # noqa: E402
 from core.stages.chain import RunDir, profile_settings  # noqa: E402
 
 SUN_CAP_DEG = 10.0
+#: The oracle occluders' lattice is this many times finer than lighting_harness's (``--oracle-finer``).
+ORACLE_FINER = 1.0
 MAP_H = 256
 
 
@@ -152,8 +154,10 @@ def _stage_frames(run_dir: str, stage: str, occluders: str, diffuse: str | None 
         from core.synth.oracle import OracleSettings, street_scene_graph
         from core.synth.prepare import synth_config_of
 
-        st = OracleSettings(max_spacing=ORACLE_MAX_SPACING_M, edge_refine=ORACLE_EDGE_REFINE, thin_slivers=True)
-        og, _, _ = street_scene_graph(synth_config_of(b), (0,), settings=st, budget=int(ORACLE_GAUSSIANS))
+        st = OracleSettings(max_spacing=ORACLE_MAX_SPACING_M / ORACLE_FINER, edge_refine=ORACLE_EDGE_REFINE,
+                            thin_slivers=True)
+        og, _, _ = street_scene_graph(synth_config_of(b), (0,), settings=st,
+                                      budget=int(ORACLE_GAUSSIANS * ORACLE_FINER ** 2))
         g.occluders = og._static_part().detach().to(g.occluders.means.dtype)
         if occluders == "oracle_only":  # shadow rays meet the true meshes alone, not the reconstruction
             g.shadow_static = lambda: g.occluders
@@ -405,6 +409,8 @@ def main() -> int:
     ap.add_argument("--occluders", default="run", choices=["run", "oracle", "oracle_only"],
                     help="the run's completed facades, the true meshes in their place, or the true meshes alone "
                          "(without the reconstruction's Gaussians) as shadow casters")
+    ap.add_argument("--oracle-finer", type=float, default=1.0,
+                    help="oracle occluders: spacing divided by this, Gaussian budget times its square")
     ap.add_argument("--diffuse", default=None, choices=["lambert", "burley"], help="diffuse lobe (gains; default the stage's)")
     ap.add_argument("--albedo", default="run", choices=["run", "gt", "gt_materials"],
                     help="the reconstruction's albedo, the true albedo, or the true albedo, roughness and metallic (gains)")
@@ -414,6 +420,8 @@ def main() -> int:
     ap.add_argument("--stages", default="volume2,joint", help="graphs compared (albedo)")
     ap.add_argument("--sigma", type=float, default=3.0, help="low-pass of the regions split, pixels")
     a = ap.parse_args()
+    global ORACLE_FINER
+    ORACLE_FINER = a.oracle_finer
     if a.what == "regions":
         res = regions(a.run, a.sigma)
     elif a.what == "gains":
