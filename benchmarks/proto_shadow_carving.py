@@ -13,6 +13,7 @@ sun rays of at least 2 lit samples and of more than twice as many lit as shadowe
 rays is removed. Measured on the default scene (``benchmarks/results/rerender_diagnosis.json``,
 ``shadow_carving_prototype``)."""
 import json
+import os
 import shutil
 import sys
 
@@ -24,75 +25,84 @@ from core.bundle import open_bundle
 from core.stages.chain import RunDir, profile_settings
 from core.scene_graph import SceneGraph
 from core.stages.pbr import _frames, prior_inputs
-if len(sys.argv) < 4:
-    raise SystemExit(__doc__)
-src, dst, sun_src = Path(sys.argv[1]), Path(sys.argv[2]), Path(sys.argv[3])
-radius = float(sys.argv[4]) if len(sys.argv) > 4 else 0.4
-sd = np.array(json.load(open(sun_src / 'pbr/summary.json'))['sun_dir_prior'])
-if dst.exists(): shutil.rmtree(dst)
-dst.mkdir(parents=True)
-for d in ('priors', 'volume', 'generative_refine', 'volume2'):
-    shutil.copytree(src / d, dst / d)
-shutil.copy2(src / 'run.json', dst / 'run.json')
-b = open_bundle(RunDir(src).scene_path())
-p = dst / 'volume2/checkpoint/scene_graph.pt'
-g = SceneGraph.load(p)
-cfg = profile_settings('quick', 'pbr')
-frames, _ = _frames(g, b, cfg)
-x = prior_inputs(frames)
-m = b.manifest
-rays_all = []; shadow_all = []
-for i, f in enumerate(frames):
-    H, W = f.camera.height, f.camera.width
-    img = x['img'][i].astype(np.float64) ** m.ldr_gamma / m.ldr_exposure
-    alb = np.maximum(x['albedo'][i], 0.02)
-    n = x['normal'][i]; dep = x['depth'][i]
-    ground = (~x['sky'][i]) & (dep > 0) & (n[..., 2] > 0.9) & (img.max(-1) < 0.95 ** 2.2)
-    if ground.sum() < 200: continue
-    sh = img / alb
-    lb = np.log(sh.mean(-1)[ground]); lc = np.log(sh[ground][:, 0] / np.maximum(sh[ground][:, 2], 1e-6))
-    feat = np.stack([lb, lc], 1); z = (feat - feat.mean(0)) / np.maximum(feat.std(0), 1e-9)
+
+def split_sun_shade(shading, ground, margin):
+    """Sun / shade masks [H, W] of the ``ground`` pixels from ``shading`` [H, W, 3] (radiance /
+    albedo): 2-means on standardised (log brightness, log red/blue), each cluster kept where a
+    pixel is ``margin`` nearer its centre; (None, None) without two clusters."""
+    g = shading[ground]
+    feat = np.stack([np.log(g.mean(-1)), np.log(g[:, 0] / np.maximum(g[:, 2], 1e-6))], 1)
+    z = (feat - feat.mean(0)) / np.maximum(feat.std(0), 1e-9)
     c = np.percentile(z, [20, 80], axis=0)
     for _ in range(30):
         lab = ((z - c[1]) ** 2).sum(1) < ((z - c[0]) ** 2).sum(1)
-        if lab.all() or (~lab).all(): break
+        if lab.all() or (~lab).all():
+            return None, None
         c = np.stack([z[~lab].mean(0), z[lab].mean(0)])
-    if lab.all() or (~lab).all(): continue
-    if z[lab].mean() < z[~lab].mean(): lab, c = ~lab, c[::-1]
-    # confident: nearer the lit centre than the shadow one by a margin
+    if z[lab].mean() < z[~lab].mean():  # the lit cluster is the brighter, redder one
+        lab, c = ~lab, c[::-1]
     marg = np.sqrt(((z - c[0]) ** 2).sum(1)) - np.sqrt(((z - c[1]) ** 2).sum(1))
-    MG = float(__import__("os").environ.get("MARGIN", "0.5"))
-    shadow_lab = (~lab) & (marg < -MG)
-    lab &= marg > MG
-    ls = lab.astype(float); thr = 0.5
-    rays = f.camera.ray_directions(); pose = f.camera.pose_numpy()
-    pts = pose[:3, 3] + rays * (dep / (rays @ pose[:3, 2]))[..., None]
-    sh_m = np.zeros_like(ground); sh_m[ground] = shadow_lab
-    Q = pts[sh_m]
-    if len(Q) > 400: Q = Q[np.random.default_rng(100 + i).choice(len(Q), 400, replace=False)]
-    shadow_all.append(Q)
-    lit = np.zeros_like(ground); lit[ground] = ls > thr
-    rays = f.camera.ray_directions(); pose = f.camera.pose_numpy()
-    pts = pose[:3, 3] + rays * (dep / (rays @ pose[:3, 2]))[..., None]
-    P = pts[lit]
-    if len(P) > 400: P = P[np.random.default_rng(i).choice(len(P), 400, replace=False)]
-    rays_all.append(P)
-O = np.concatenate(rays_all) + np.array([0, 0, 0.1])
-occ = g.occluders
-M = occ.means.detach().double().numpy()
-def votes(OO):
-    cnt = np.zeros(len(M))
-    for k in range(0, len(OO), 100):
-        o = OO[k:k + 100]
-        v = M[None] - o[:, None]
-        t = v @ sd
-        d2 = (v ** 2).sum(-1) - t ** 2
-        cnt += ((t > 0.5) & (d2 < radius ** 2)).sum(0)
-    return cnt
-S = np.concatenate(shadow_all) + np.array([0, 0, 0.1])
-lit_v, sh_v = votes(O), votes(S)
-keep = ~((lit_v >= 2) & (lit_v > 2 * sh_v))
-print('shadow rays', len(S))
-print('lit rays', len(O), 'occluders', len(M), '->', int(keep.sum()))
-g.occluders = occ.index(torch.from_numpy(np.flatnonzero(keep)))
-g.save(p)
+    lit, shade = np.zeros_like(ground), np.zeros_like(ground)
+    lit[ground], shade[ground] = lab & (marg > margin), ~lab & (marg < -margin)
+    return lit, shade
+
+
+def main():
+    if len(sys.argv) < 4:
+        raise SystemExit(__doc__)
+    src, dst, sun_src = Path(sys.argv[1]), Path(sys.argv[2]), Path(sys.argv[3])
+    radius = float(sys.argv[4]) if len(sys.argv) > 4 else 0.4
+    sd = np.array(json.load(open(sun_src / 'pbr/summary.json'))['sun_dir_prior'])
+    if dst.exists(): shutil.rmtree(dst)
+    dst.mkdir(parents=True)
+    for d in ('priors', 'volume', 'generative_refine', 'volume2'):
+        shutil.copytree(src / d, dst / d)
+    shutil.copy2(src / 'run.json', dst / 'run.json')
+    b = open_bundle(RunDir(src).scene_path())
+    p = dst / 'volume2/checkpoint/scene_graph.pt'
+    g = SceneGraph.load(p)
+    cfg = profile_settings('quick', 'pbr')
+    frames, _ = _frames(g, b, cfg)
+    x = prior_inputs(frames)
+    m = b.manifest
+    rays_all = []; shadow_all = []
+    for i, f in enumerate(frames):
+        H, W = f.camera.height, f.camera.width
+        img = x['img'][i].astype(np.float64) ** m.ldr_gamma / m.ldr_exposure
+        alb = np.maximum(x['albedo'][i], 0.02)
+        n = x['normal'][i]; dep = x['depth'][i]
+        ground = (~x['sky'][i]) & (dep > 0) & (n[..., 2] > 0.9) & (img.max(-1) < 0.95 ** 2.2)
+        if ground.sum() < 200: continue
+        lit, shadow = split_sun_shade(img / alb, ground, float(os.environ.get('MARGIN', '0.5')))
+        if lit is None: continue
+        rays = f.camera.ray_directions(); pose = f.camera.pose_numpy()
+        pts = pose[:3, 3] + rays * (dep / (rays @ pose[:3, 2]))[..., None]
+        Q = pts[shadow]
+        if len(Q) > 400: Q = Q[np.random.default_rng(100 + i).choice(len(Q), 400, replace=False)]
+        shadow_all.append(Q)
+        P = pts[lit]
+        if len(P) > 400: P = P[np.random.default_rng(i).choice(len(P), 400, replace=False)]
+        rays_all.append(P)
+    O = np.concatenate(rays_all) + np.array([0, 0, 0.1])
+    occ = g.occluders
+    M = occ.means.detach().double().numpy()
+    def votes(OO):
+        cnt = np.zeros(len(M))
+        for k in range(0, len(OO), 100):
+            o = OO[k:k + 100]
+            v = M[None] - o[:, None]
+            t = v @ sd
+            d2 = (v ** 2).sum(-1) - t ** 2
+            cnt += ((t > 0.5) & (d2 < radius ** 2)).sum(0)
+        return cnt
+    S = np.concatenate(shadow_all) + np.array([0, 0, 0.1])
+    lit_v, sh_v = votes(O), votes(S)
+    keep = ~((lit_v >= 2) & (lit_v > 2 * sh_v))
+    print('shadow rays', len(S))
+    print('lit rays', len(O), 'occluders', len(M), '->', int(keep.sum()))
+    g.occluders = occ.index(torch.from_numpy(np.flatnonzero(keep)))
+    g.save(p)
+
+
+if __name__ == '__main__':
+    main()
