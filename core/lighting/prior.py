@@ -62,6 +62,9 @@ MAX_GLOW_LOG = 5.0
 #: Largest |log-slope| of the sky radiance in the elevation sine (e^5 ~ 150 x from horizon to
 #: zenith).
 MAX_SKY_SLOPE_LOG = 5.0
+#: Smallest linear radiance of a channel used by the colour cue (about 1/500 of a mid-grey
+#: surface under the sun: below it the 8-bit capture has no colour left, only quantisation).
+CHROMA_MIN_RADIANCE = 2e-3
 
 
 @dataclass(frozen=True)
@@ -148,6 +151,19 @@ class LightingSettings:
     subset, while the low region stays put. (Tried beside it and not kept: the sky's aureole as a
     second cue, a parametric sky fitted around each candidate: within 0.4 deg on the three
     development scenes.)"""
+    chroma_weight: float = 0.0
+    """Weight of the colour cue in the ``"lambert"`` sun search (0 = off: luminance only). Sunlight
+    is warmer than skylight, so the red/blue ratio of a sample's shading (radiance / albedo, per
+    channel) tells sunlit from shaded pixels even where the albedo is off by a grey factor (a
+    reconstruction's albedo often bakes some of the sun in, which the luminance cue then reads as
+    light). With it the score of a candidate is ``lum / lum_0 + chroma_weight * chroma / chroma_0``:
+    the mean |residual| of the luminance fit (:func:`_shading_fit`) and of the chroma fit
+    ``log(S_r / S_b) = a + c (1 + n_z) / 2 + e h`` with ``h = t / (t + chroma_knee)``,
+    ``t = V max(0, n . s)``, each over the same fit without the sun and at most 1 (a cue whose fit
+    has no sun term, ``e <= 0``, counts as 1: no brighter or no warmer sunlit side)."""
+    chroma_knee: float = 0.25
+    """Sun shading ``V max(0, n . s)`` at which the chroma of a sample is half way from the sky's
+    to the sun's (about the ratio of sky to sun irradiance)."""
     basin_radius_deg: float = 15.0
     """Radius around the basin centroid in which refinement starts are taken and refinement
     stays. Measured with ``basin_quantile`` 0.05 on four development reconstructions (two of the
@@ -165,6 +181,9 @@ class LightingSettings:
         if not (0.0 <= self.basin_quantile < 1.0) or not (0.0 < self.basin_radius_deg <= 180.0):
             raise ConfigError(f"basin_quantile / basin_radius_deg: must be in [0, 1) / (0, 180], got "
                               f"{self.basin_quantile} / {self.basin_radius_deg}")
+        if not (self.chroma_weight >= 0.0 and math.isfinite(self.chroma_weight)) or not self.chroma_knee > 0.0:
+            raise ConfigError(f"chroma_weight / chroma_knee: expected >= 0 / > 0, got {self.chroma_weight} / "
+                              f"{self.chroma_knee}")
         if self.sun_model not in ("auto", "transport", "lambert"):
             raise ConfigError(f"sun_model: must be 'auto', 'transport' or 'lambert', got {self.sun_model!r}")
 
@@ -316,12 +335,48 @@ def _shading_fit(nrm, shading, s_dir, vis=None):
     return (float(np.mean(np.abs(r))) if coef[2] > 0 else math.inf), coef
 
 
-def _lambert_score(nrm, shading, vis_of=None):
+def _null_residual(nrm, y) -> float:
+    """Mean |residual| of ``y ~ a + c (1 + n_z) / 2`` (the fit without a sun), floored above 0."""
+    x = np.stack([np.ones(len(y)), (1.0 + nrm[:, 2]) / 2.0], 1)
+    coef, *_ = np.linalg.lstsq(x, y, rcond=None)
+    return max(float(np.mean(np.abs(y - x @ coef))), 1e-12)
+
+
+def _chroma_fit(nrm, chroma, s_dir, vis, knee: float) -> float:
+    """Mean |residual| of ``chroma ~ a + c (1 + n_z) / 2 + e t / (t + knee)``, ``t = V max(0, n . s)``;
+    inf when ``e <= 0`` (the sunlit side is not the warmer one)."""
+    t = np.maximum(nrm @ s_dir, 0.0)
+    if vis is not None:
+        t = t * vis
+    x = np.stack([np.ones_like(t), (1.0 + nrm[:, 2]) / 2.0, t / (t + knee)], 1)
+    coef, *_ = np.linalg.lstsq(x, chroma, rcond=None)
+    return float(np.mean(np.abs(chroma - x @ coef))) if coef[2] > 0 else math.inf
+
+
+def _lambert_score(nrm, shading, vis_of=None, chroma=None, chroma_weight: float = 0.0, chroma_knee: float = 0.25):
     """``score(dirs [K, 3]) -> [K]``: mean |residual| of :func:`_shading_fit` per candidate sun.
-    ``vis_of(dirs [K, 3]) -> [K, N]``: the samples' visibility of each candidate (cast shadows)."""
+    ``vis_of(dirs [K, 3]) -> [K, N]``: the samples' visibility of each candidate (cast shadows).
+    ``chroma`` ([N] log(S_r / S_b) of the samples, NaN where unusable) with ``chroma_weight`` > 0:
+    the colour cue is added (:attr:`LightingSettings.chroma_weight`)."""
+    use_c = chroma is not None and chroma_weight > 0
+    if use_c:
+        ok = np.isfinite(chroma)
+        if ok.sum() < 50:
+            use_c = False
+        else:
+            n_c, c_c = nrm[ok], chroma[ok]
+            lum0, chroma0 = _null_residual(nrm, shading), _null_residual(n_c, c_c)
+
     def score(cands):
         vis = vis_of(cands) if vis_of is not None else [None] * len(cands)
-        return np.array([_shading_fit(nrm, shading, c, v)[0] for c, v in zip(cands, vis)])
+        out = []
+        for c, v in zip(cands, vis):
+            r = _shading_fit(nrm, shading, c, v)[0]
+            if use_c:  # each cue over its no-sun fit; a cue without a sun term counts as that fit
+                rc = _chroma_fit(n_c, c_c, c, None if v is None else v[ok], chroma_knee)
+                r = min(r / lum0, 1.0) + chroma_weight * min(rc / chroma0, 1.0)
+            out.append(r)
+        return np.array(out)
     return score
 
 
@@ -624,7 +679,14 @@ def estimate_lighting(frames_ldr, cameras, sky_masks, depth, normals, *,
             diag["interreflection_known_fraction"] = tr.known_fraction
             score = _transport_score(tr)
         else:
-            score = _lambert_score(nn, shade, vis_of)
+            chroma = None
+            if albedo is not None and s.chroma_weight > 0:  # log(S_r / S_b): the colour cue
+                a_rb, r_rb = alb[surf][pick][:, [0, 2]], rad[surf][pick][:, [0, 2]]
+                good = (a_rb > s.min_albedo).all(1) & (r_rb > CHROMA_MIN_RADIANCE).all(1)
+                sh = np.log(np.maximum(r_rb, CHROMA_MIN_RADIANCE)) - np.log(np.maximum(a_rb, ALBEDO_FLOOR))
+                chroma = np.where(good, sh[:, 0] - sh[:, 1], np.nan)
+                diag["chroma_samples"] = int(good.sum())
+            score = _lambert_score(nn, shade, vis_of, chroma, s.chroma_weight, s.chroma_knee)
         sun_fit, res_best, d_sh = _search_sun(score, s)
         diag.update(d_sh)
         if math.isfinite(res_best) and d_sh["shading_contrast"] >= s.min_shading_contrast:

@@ -146,3 +146,41 @@ def test_basin_search_ignores_a_narrow_valley_far_from_the_low_region():
     assert L.sun_direction_error_deg(np.asarray(diag["basin_centroid"]), sun) < 15.0
     with pytest.raises(ConfigError, match="basin_quantile"):
         L.LightingSettings(basin_quantile=1.0)
+
+
+def test_colour_cue_finds_the_sun_through_a_grey_albedo_error():
+    """The wall-and-ground scene of the cast-shadow test, shaded per channel by a blue sky and a
+    warm sun, seen through a reconstruction's albedo that is off by a large grey factor per sample
+    (log-normal, sigma 0.6) and brighter where the sun falls (the sun baked in, x2.8: as bright as
+    the sun makes it): the luminance of radiance / albedo no longer shows the shadow, its red/blue ratio still does.
+    With ``chroma_weight`` the search must find the sun, and do better than without it."""
+    rng = np.random.default_rng(3)
+    m = 4000
+    pts = np.stack([rng.uniform(-15, 15, m), rng.uniform(0.3, 12, m), np.zeros(m)], 1)
+    n = np.tile([0.0, 0.0, 1.0], (m, 1))
+
+    def vis_of(dirs):
+        dirs = np.asarray(dirs, np.float64).reshape(-1, 3)
+        sx, sy, sz = dirs[:, 0:1], dirs[:, 1:2], dirs[:, 2:3]
+        t = np.where(sy < -1e-9, -pts[None, :, 1] / np.where(sy < -1e-9, sy, -1.0), 1e9)
+        hit = (t * sz < 6.0) & (np.abs(pts[None, :, 0] + t * sx) < 4.0)
+        return np.where(hit, 0.0, 1.0)
+
+    sun = L._sph(math.radians(-110.0), math.radians(35.0))
+    lit = vis_of(sun)[0] * max(sun[2], 0.0)
+    shade_rgb = np.array([0.30, 0.40, 0.55]) + np.array([1.6, 1.4, 1.0]) * lit[:, None]   # radiance / true albedo
+    grey = np.exp(rng.normal(0, 0.6, m)) * np.where(lit > 0, 2.8, 1.0)                    # albedo error
+    seen = shade_rgb / grey[:, None] * np.exp(rng.normal(0, 0.02, (m, 3)))
+    lum = seen.mean(1)
+    chroma = np.log(seen[:, 0]) - np.log(seen[:, 2])
+    s = L.LightingSettings()
+    with_c, _, _ = L._search_sun(L._lambert_score(n, lum, vis_of, chroma, chroma_weight=1.0), s)
+    without, _, _ = L._search_sun(L._lambert_score(n, lum, vis_of), s)
+    assert L.sun_direction_error_deg(with_c, sun) < 3.0
+    assert L.sun_direction_error_deg(without, sun) > L.sun_direction_error_deg(with_c, sun) + 10.0
+    # a cue whose sunlit side is bluer than the shade is no evidence: the score ignores it
+    flat = L._lambert_score(n, lum, vis_of, -chroma, chroma_weight=1.0)(sun[None])[0]
+    plain = L._lambert_score(n, lum, vis_of)(sun[None])[0] / L._null_residual(n, lum)
+    assert flat == pytest.approx(min(plain, 1.0) + 1.0)
+    with pytest.raises(ConfigError, match="chroma_weight"):
+        L.LightingSettings(chroma_weight=-1.0)

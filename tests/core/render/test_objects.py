@@ -98,6 +98,32 @@ def test_cropping_to_the_box_drops_the_floaters_of_an_inserted_car(street, tmp_p
         assert bool((sky_before & opaque_now).any()) is column, crop  # floaters against the sky
 
 
+def test_cropping_leaves_the_road_under_the_object_behind():
+    """A node learns the road patch it stands on (flat, facing up, at and just below the box's
+    bottom face, its contact shadow in the colour): the crop leaves that behind and keeps the
+    body, the wheels' undersides (facing down) and an upward face higher up (the bonnet)."""
+    h = SIZE[2]
+    rows = [((0.0, 0.0, -h / 2 - 0.04), (0, 0, 1), "road below the face"),
+            ((1.0, 0.5, -h / 2 + 0.02), (0, 0, 1), "road at the face"),
+            ((-1.5, 0.0, -h / 2 + 0.02), (0, 0, -1), "tyre underside"),
+            ((0.0, 0.9, 0.0), (0, 1, 0), "door"),
+            ((1.5, 0.0, 0.1), (0, 0, 1), "bonnet")]
+    n = len(rows)
+    g = Gaussians.from_activated(torch.tensor([r[0] for r in rows], dtype=torch.float64),
+                                 torch.tensor([[1.0, 0, 0, 0]] * n, dtype=torch.float64),
+                                 torch.full((n, 3), 0.05, dtype=torch.float64), torch.full((n,), 0.9, dtype=torch.float64),
+                                 torch.full((n, 3), 0.3, dtype=torch.float64),
+                                 torch.tensor([r[1] for r in rows], dtype=torch.float64),
+                                 torch.full((n, 3), 0.3, dtype=torch.float64), torch.full((n,), 0.5, dtype=torch.float64),
+                                 torch.zeros(n, dtype=torch.float64))
+    kept = crop_to_box(g, SIZE)
+    kept_z = sorted(round(float(z), 3) for z in kept.means[:, 2])
+    assert kept_z == sorted(round(r[0][2], 3) for r in rows[2:])
+    assert crop_to_box(g, SIZE, ground_m=0.0).num == n  # 0: the road patch stays (the bottom margin too)
+    with pytest.raises(ConfigError, match="ground_m"):
+        crop_to_box(g, SIZE, ground_m=-0.1)
+
+
 def test_an_object_asset_exported_from_one_scene_goes_into_another(street, tmp_path):
     graph, views = street
     path = export_asset(graph, "car0", tmp_path / "car0.pt")
