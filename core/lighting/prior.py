@@ -163,7 +163,16 @@ class LightingSettings:
     has no sun term, ``e <= 0``, counts as 1: no brighter or no warmer sunlit side)."""
     chroma_knee: float = 0.25
     """Sun shading ``V max(0, n . s)`` at which the chroma of a sample is half way from the sky's
-    to the sun's (about the ratio of sky to sun irradiance)."""
+    to the sun's (about the ratio of sky to sun irradiance).
+
+    Measured as the pbr stage's prior search (``benchmarks/bench_sun.py``, ``chroma_weight`` 1.0
+    against 0; the volume2 stage of one reconstruction each): default scene (quick) 4.7 -> 10.9
+    deg, dev1 (benchmark) 30.1 -> 28.9, dev2 (benchmark, a 7.9 deg sunrise sun) 27.6 -> 27.5: no
+    better on the whole, so off; 3.0 on the default scene: 11.5. (Also tried beside it and not
+    kept: ranking the search's best coarse candidates 20 deg apart by the PBR pass itself, each
+    candidate's sun and the prior's sky with L1-optimal gains on 1024 pixels of each training
+    frame: on the default scene it preferred a candidate 30.5 deg off, L1 0.0836, to the
+    prior's 4.6 deg one, 0.0865.)"""
     basin_radius_deg: float = 15.0
     """Radius around the basin centroid in which refinement starts are taken and refinement
     stays. Measured with ``basin_quantile`` 0.05 on four development reconstructions (two of the
@@ -426,6 +435,7 @@ def _search_sun(score, s: LightingSettings):
         cand.append((math.atan2(basin[1], basin[0]), math.asin(float(np.clip(basin[2], -1, 1))), cb))
     b0 = int(np.argmin(res))
     best_res, ba, be = math.inf, a_.ravel()[b0], e_.ravel()[b0]
+    refined = []
     for ca, ce, cr in cand:
         for fine in (step / 4, step / 16):
             da = np.arange(-4, 5) * fine
@@ -438,13 +448,15 @@ def _search_sun(score, s: LightingSettings):
             b2 = int(np.argmin(r2))
             if r2[b2] <= cr:
                 ca, ce, cr = aa.ravel()[b2], ee.ravel()[b2], float(r2[b2])
+        refined.append(([round(float(x), 6) for x in _sph(ca, ce)], float(cr)))
         if cr < best_res:
             ba, be, best_res = ca, ce, cr
     finite = res[np.isfinite(res)]
     # contrast: how much better the best direction explains the shading than a typical one
     contrast = float(1.0 - best_res / np.median(finite)) if len(finite) else 0.0
     med = float(np.median(finite)) if len(finite) else math.inf
-    d = {"shading_residual": best_res, "shading_residual_median": med, "shading_contrast": contrast}
+    d = {"shading_residual": best_res, "shading_residual_median": med, "shading_contrast": contrast,
+         "candidates": refined}
     if basin is not None:
         d["basin_centroid"] = [round(float(x), 4) for x in basin]
     return _sph(ba, be), best_res, d

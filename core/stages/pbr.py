@@ -192,7 +192,22 @@ class PBRStageConfig(StageShading):
     clipped; the fit (and the joint stage after it) moves the rest. Needs the dome (the chain's
     runs have it); its coverage is in the summary."""
 
+    sun_floor: float = 0.0
+    """The sun of the lighting prior as a floor: texels within ``sun_floor_deg`` of the prior's
+    sun direction may not fall below ``sun_floor`` times the prior's radiance there, in this stage
+    and in the joint stage (the floor is part of the held sky evidence, ``sky_evidence.npz``);
+    the sun may still grow. 0 = off. Why: with the reconstruction's albedo, which keeps part of
+    the sun on sunlit walls, the fit moves light from the sun to the sky (default scene, quick:
+    the sun's peak radiance 1577 in the prior, 508 after the fit, against a sun irradiance the
+    prior had within 17%; ``benchmarks/results/rerender_diagnosis.json``)."""
+    sun_floor_deg: float = 2.0
+    """Radius of the held sun region around the prior's sun direction (the prior's disc is
+    :data:`core.lighting.prior.SUN_RADIUS_DEG` wide)."""
+
     def __post_init__(self) -> None:
+        if not (0.0 <= self.sun_floor <= 10.0) or not (0.0 < self.sun_floor_deg <= 45.0):
+            raise ConfigError(f"sun_floor / sun_floor_deg: expected [0, 10] / (0, 45], got {self.sun_floor} / "
+                              f"{self.sun_floor_deg}")
         if not isinstance(self.sky_evidence, SkyEvidenceSettings):
             raise ConfigError(f"sky_evidence: expected SkyEvidenceSettings, got {type(self.sky_evidence).__name__}")
         if not isinstance(self.skip_sun_search, bool):
@@ -325,6 +340,27 @@ def _prior(frames: list[_FrameData], bundle, height: int, tracer=None, search_su
                              visibility=numpy_visibility(tracer) if tracer is not None else None)
 
 
+def _sun_floor(hold: SkyEvidence | None, prior_full: np.ndarray, sun_dir, h: int, cfg: PBRStageConfig):
+    """``hold`` (or an evidence that holds nothing) with the prior's sun as a floor
+    (:attr:`PBRStageConfig.sun_floor`) on an ``h`` x 2 ``h`` map; returns it and its summary."""
+    from core.conventions import envmap_directions
+
+    prior_h = resample(torch.from_numpy(np.asarray(prior_full, np.float64)), h, 2 * h)
+    if hold is None:
+        zero = torch.zeros(h, 2 * h, dtype=torch.float64)
+        hold = SkyEvidence(torch.log(prior_h.clamp_min(LOG_RADIANCE_FLOOR)), zero,
+                           torch.full_like(zero, math.log(LOG_RADIANCE_FLOOR)))
+    dirs = torch.from_numpy(np.asarray(envmap_directions(h, 2 * h), np.float64))
+    sun = torch.as_tensor(np.asarray(sun_dir, np.float64))
+    disc = dirs @ (sun / sun.norm().clamp_min(1e-12)) >= math.cos(math.radians(cfg.sun_floor_deg))
+    # the floor of a texel: the prior's radiance there (its dimmest channel) times sun_floor
+    floor = torch.log((prior_h.min(dim=-1).values * cfg.sun_floor).clamp_min(LOG_RADIANCE_FLOOR))
+    new_floor = torch.where(disc & (hold.weight < 1.0), torch.maximum(hold.log_floor, floor), hold.log_floor)
+    held = SkyEvidence(hold.log_radiance, hold.weight, new_floor)
+    return held, {"enabled": True, "texels": int(disc.sum()), "fraction": cfg.sun_floor,
+                  "radius_deg": cfg.sun_floor_deg, "peak_floor": float(torch.exp(new_floor).max())}
+
+
 def _psnr(a: torch.Tensor, b: torch.Tensor) -> float:
     mse = float(((a - b) ** 2).mean())
     return 10.0 * math.log10(1.0 / max(mse, 1e-12))
@@ -400,6 +436,10 @@ def fit_lighting(graph, bundle, out_dir: str | Path, cfg: PBRStageConfig | None 
             # the prior E_g holds the observed sky too (what the joint stage's log prior pulls to)
             log_p = torch.log(resample(torch.from_numpy(prior_full).double(), h, 2 * h).clamp_min(LOG_RADIANCE_FLOOR))
             prior_full = resample(torch.exp(ev.hold(log_p)), 512, 1024).numpy().astype(np.float32)
+    sun_floor_stats = {"enabled": False}
+    if cfg.sun_floor > 0 and est.sun_source != "none":
+        hold, sun_floor_stats = _sun_floor(hold, prior_full, est.sun_dir, h, cfg)
+        hold.save(out / "sky_evidence.npz")
     prior_t = resample(torch.from_numpy(prior_full).double(), h, 2 * h)
     env = EnvironmentMap(prior_t, log_space=True, requires_grad=True)
     log_prior = env.param.detach().clone()
@@ -518,7 +558,7 @@ def fit_lighting(graph, bundle, out_dir: str | Path, cfg: PBRStageConfig | None 
                "capture_sky": {"sunless": sunless, **sky_stats}, "skips_fired": fired,
                "photometric_psnr_prior": psnr_before, "photometric_psnr_fitted": psnr_after,
                "sun_source": est.sun_source, "sun_dir_prior": [float(x) for x in est.sun_dir],
-               "sky_evidence": sky_stats_obs,
+               "sky_evidence": sky_stats_obs, "sun_floor": sun_floor_stats,
                "history": history, "resumed_from_iteration": start,
                "seconds": {"gbuffers": t_frames, "prior": t_prior, "total": time.perf_counter() - t0}}
     sep = np.full((4, 1024, 3), 255, np.uint8)
