@@ -75,6 +75,36 @@ def test_bad_settings_name_the_field(field, value):
             JointSettings(**{field: value})
 
 
+def test_the_sun_floor_holds_the_prior_sun_and_nothing_else():
+    """``sun_floor``: a fit that dims the whole map keeps the prior's sun disc at its floor
+    (``sun_floor`` x the prior there) and is free everywhere else; an observed, held sky texel
+    keeps its evidence."""
+    from core.lighting.prior import _sph, compose_envmap
+    from core.stages.pbr import _sun_floor
+
+    h = 64
+    sun = _sph(0.7, 0.6)
+    prior = compose_envmap(np.array([[0.0, -0.5, 0.0]] * 3), sun, np.array([3.0, 3.0, 3.0]), np.full(3, 0.2), h)
+    cfg = PBRStageConfig(sun_floor=0.5)
+    held, stats = _sun_floor(None, prior, sun, h, cfg)
+    assert stats["enabled"] and stats["texels"] > 0
+    dim = torch.log(torch.from_numpy(prior.astype(np.float64)) * 0.01)
+    out = torch.exp(held.hold(dim)).numpy()
+    peak = np.unravel_index(int(np.argmax(prior.mean(-1))), prior.shape[:2])
+    assert out[peak].min() == pytest.approx(0.5 * prior[peak].min(), rel=1e-6)
+    far = (0, 0)  # the map's top row, far from a sun 34 deg high
+    assert out[far] == pytest.approx(0.01 * prior[far], rel=1e-6)
+    # an evidence that holds a texel: the floor does not touch it
+    w = torch.zeros(h, 2 * h, dtype=torch.float64)
+    w[peak] = 1.0
+    ev = SkyEvidence(torch.zeros(h, 2 * h, 3, dtype=torch.float64), w, torch.full((h, 2 * h), -30.0, dtype=torch.float64))
+    held2, _ = _sun_floor(ev, prior, sun, h, cfg)
+    assert float(held2.log_floor[peak]) == -30.0
+    for bad in ({"sun_floor": -1.0}, {"sun_floor_deg": 0.0}):
+        with pytest.raises(ConfigError, match="sun_floor"):
+            PBRStageConfig(**bad)
+
+
 def test_the_stages_trace_shadows_as_a_relight_does():
     """The map is fitted under the visibility and the indirect light it is rendered with."""
     from dataclasses import fields
