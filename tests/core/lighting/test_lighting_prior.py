@@ -69,6 +69,18 @@ def test_shading_fit_recovers_sun_on_lambertian_samples():
     assert diag["shading_contrast"] > 0.2
 
 
+def _wall_shadow(pts):
+    """``vis_of(dirs [K, 3]) -> [K, N]``: visibility of ground points ``pts`` [N, 3] (z = 0,
+    y > 0) beside a wall 8 m long (|x| < 4) and 6 m high in the plane y = 0."""
+    def vis_of(dirs):
+        dirs = np.asarray(dirs, np.float64).reshape(-1, 3)
+        sx, sy, sz = dirs[:, 0:1], dirs[:, 1:2], dirs[:, 2:3]
+        t = np.where(sy < -1e-9, -pts[None, :, 1] / np.where(sy < -1e-9, sy, -1.0), 1e9)
+        hit = (t * sz < 6.0) & (np.abs(pts[None, :, 0] + t * sx) < 4.0)
+        return np.where(hit, 0.0, 1.0)
+    return vis_of
+
+
 def test_cast_shadows_identify_the_sun_azimuth_on_a_flat_ground():
     """A flat ground beside a wall 8 m long and 6 m high: shading alone cannot tell the sun's
     azimuth (n . s is the same for every azimuth), the wall's shadow can. The visibility cue
@@ -77,12 +89,7 @@ def test_cast_shadows_identify_the_sun_azimuth_on_a_flat_ground():
     pts = np.stack([rng.uniform(-15, 15, 3000), rng.uniform(0.3, 12, 3000), np.zeros(3000)], 1)
     n = np.tile([0.0, 0.0, 1.0], (3000, 1))
 
-    def vis_of(dirs):
-        dirs = np.asarray(dirs, np.float64).reshape(-1, 3)
-        sx, sy, sz = dirs[:, 0:1], dirs[:, 1:2], dirs[:, 2:3]
-        t = np.where(sy < -1e-9, -pts[None, :, 1] / np.where(sy < -1e-9, sy, -1.0), 1e9)
-        hit = (t * sz < 6.0) & (np.abs(pts[None, :, 0] + t * sx) < 4.0)
-        return np.where(hit, 0.0, 1.0)
+    vis_of = _wall_shadow(pts)
 
     sun = L._sph(math.radians(-110.0), math.radians(35.0))
     shade = 0.2 + 0.3 + 1.5 * vis_of(sun)[0] * max(sun[2], 0.0)
@@ -159,12 +166,7 @@ def test_colour_cue_finds_the_sun_through_a_grey_albedo_error():
     pts = np.stack([rng.uniform(-15, 15, m), rng.uniform(0.3, 12, m), np.zeros(m)], 1)
     n = np.tile([0.0, 0.0, 1.0], (m, 1))
 
-    def vis_of(dirs):
-        dirs = np.asarray(dirs, np.float64).reshape(-1, 3)
-        sx, sy, sz = dirs[:, 0:1], dirs[:, 1:2], dirs[:, 2:3]
-        t = np.where(sy < -1e-9, -pts[None, :, 1] / np.where(sy < -1e-9, sy, -1.0), 1e9)
-        hit = (t * sz < 6.0) & (np.abs(pts[None, :, 0] + t * sx) < 4.0)
-        return np.where(hit, 0.0, 1.0)
+    vis_of = _wall_shadow(pts)
 
     sun = L._sph(math.radians(-110.0), math.radians(35.0))
     lit = vis_of(sun)[0] * max(sun[2], 0.0)
