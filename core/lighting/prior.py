@@ -160,10 +160,7 @@ class LightingSettings:
     the mean |residual| of the luminance fit (:func:`_shading_fit`) and of the chroma fit
     ``log(S_r / S_b) = a + c (1 + n_z) / 2 + e h`` with ``h = t / (t + chroma_knee)``,
     ``t = V max(0, n . s)``, each over the same fit without the sun and at most 1 (a cue whose fit
-    has no sun term, ``e <= 0``, counts as 1: no brighter or no warmer sunlit side)."""
-    chroma_knee: float = 0.25
-    """Sun shading ``V max(0, n . s)`` at which the chroma of a sample is half way from the sky's
-    to the sun's (about the ratio of sky to sun irradiance).
+    has no sun term, ``e <= 0``, counts as 1: no brighter or no warmer sunlit side).
 
     Measured as the pbr stage's prior search (``benchmarks/bench_sun.py``, ``chroma_weight`` 1.0
     against 0; the volume2 stage of one reconstruction each): default scene (quick) 4.7 -> 10.9
@@ -173,6 +170,9 @@ class LightingSettings:
     candidate's sun and the prior's sky with L1-optimal gains on 1024 pixels of each training
     frame: on the default scene it preferred a candidate 30.5 deg off, L1 0.0836, to the
     prior's 4.6 deg one, 0.0865.)"""
+    chroma_knee: float = 0.25
+    """Sun shading ``V max(0, n . s)`` at which the chroma of a sample is half way from the sky's
+    to the sun's (about the ratio of sky to sun irradiance)."""
     basin_radius_deg: float = 15.0
     """Radius around the basin centroid in which refinement starts are taken and refinement
     stays. Measured with ``basin_quantile`` 0.05 on four development reconstructions (two of the

@@ -41,6 +41,7 @@ import torch
 from tqdm import tqdm
 
 from core.camera import Camera
+from core.conventions import envmap_directions
 from core.errors import ConfigError, FormatError, NumericalError
 from core.io.atomic import atomic_output
 from core.io.envmap_file import write_envmap
@@ -348,8 +349,6 @@ def _prior(frames: list[_FrameData], bundle, height: int, tracer=None, search_su
 def _sun_floor(hold: SkyEvidence | None, prior_full: np.ndarray, sun_dir, h: int, cfg: PBRStageConfig):
     """``hold`` (or an evidence that holds nothing) with the prior's sun as a floor
     (:attr:`PBRStageConfig.sun_floor`) on an ``h`` x 2 ``h`` map; returns it and its summary."""
-    from core.conventions import envmap_directions
-
     prior_h = resample(torch.from_numpy(np.asarray(prior_full, np.float64)), h, 2 * h)
     if hold is None:
         zero = torch.zeros(h, 2 * h, dtype=torch.float64)
