@@ -29,6 +29,9 @@ Randomised data and the out-of-distribution protocol (issue #18; ``core.synth.sp
    and scoring a snapshot on the ``val`` split (and the old v9/v10) every ``--eval-every`` steps
    (``<work>/inverse_randomised/log.json``). The checkpoint is saved every 100 steps (resumable).
    Only validation streets are ever evaluated here.
+   ``--mix-old N`` adds the old generator's first N training streets (``mix-old`` generates them
+   under ``--old-data``), so that the model keeps the streets the default scene comes from;
+   ``--view`` conditions the model on the capture's camera (contract 1.1's optional input).
 7. ``ood``: the shipped model and the best-on-val snapshot on every split (val, test_id, each
    test_ood_<axis>) and the old streets; replaces ``models/inverse_gbuffer.onnx`` only when the
    snapshot is better on val and not materially worse on the old streets (``replace_decision``);
@@ -262,13 +265,19 @@ def eval_streets(onnx: Path, dirs, threads: int) -> dict:
 
 
 def finetune_randomised(rand: Path, old: Path, work: Path, init_from: Path, steps: int, eval_every: int, lr: float,
-                        p_mean: float, batch: int, crop: int, threads: int) -> dict:
-    """Fine-tune the inverse model on the randomised train split; every ``eval_every`` steps export
-    a snapshot and score it on the validation streets only (randomised val, old v9/v10)."""
+                        p_mean: float, batch: int, crop: int, threads: int, mix_old: tuple[str, ...] = (),
+                        view: bool = False) -> dict:
+    """Fine-tune the inverse model on the randomised train split (plus the old generator's
+    training streets ``mix_old`` under ``old``, so that the model keeps what it knew of the
+    streets the pipeline's default scene comes from); every ``eval_every`` steps export a snapshot
+    and score it on the validation streets only (randomised val, old v9/v10). ``view``: the network
+    also takes the capture's camera (contract 1.1's optional input; its new stem weights start at
+    zero, so step 0 is the shipped model)."""
     from core.synth.gen_data import DataSettings, load_clips
     from core.synth.gen_train import TrainSettings, train_model
 
-    out = work / f"inverse_randomised_lr{lr:g}"  # one run per learning rate, each resumable
+    mix_tag = f"_mix{len(mix_old)}" if mix_old else ""
+    out = work / f"inverse_randomised_lr{lr:g}{mix_tag}{'_view' if view else ''}"  # one run per variant, resumable
     snaps = out / "snapshots"
     snaps.mkdir(parents=True, exist_ok=True)
     shipped = work / "inverse_randomised_shipped.onnx"  # the model before the fine-tune ("before")
@@ -278,6 +287,12 @@ def finetune_randomised(rand: Path, old: Path, work: Path, init_from: Path, step
         if card.is_file():
             shutil.copy2(card, shipped.with_name(shipped.stem + ".card.json"))
     train_dirs, val = split_dirs(rand, "train"), split_dirs(rand, "val")
+    missing = [n for n in mix_old if not (old / n / "bundle.json").is_file()]
+    if missing:
+        raise SystemExit(f"--mix-old: no bundle for {missing} under {old} (generate them with the mix-old step)")
+    if set(mix_old) & set(OLD_VAL + OLD_HELD):
+        raise SystemExit(f"--mix-old: {sorted(set(mix_old) & set(OLD_VAL + OLD_HELD))} are validation / held-out streets")
+    train_dirs = train_dirs + [old / n for n in mix_old]
     old_val = [old / n for n in OLD_VAL if (old / n / "bundle.json").is_file()]
     if not train_dirs or not val:
         raise SystemExit(f"no randomised train/val bundles under {rand} (run the randomised step first)")
@@ -285,7 +300,7 @@ def finetune_randomised(rand: Path, old: Path, work: Path, init_from: Path, step
     log = json.loads(log_p.read_text()) if log_p.is_file() else {"entries": []}
     log.update({"init_from": str(shipped), "train": [d.name for d in train_dirs], "val": [d.name for d in val],
                 "old_val": [d.name for d in old_val], "lr": lr, "p_mean": p_mean, "batch": batch, "crop": crop,
-                "threads": threads, "score": "val_score (benchmarks/train_generative.py)"})
+                "threads": threads, "mix_old": list(mix_old), "view": view, "score": "val_score (benchmarks/train_generative.py)"})
     done = {e["step"] for e in log["entries"]}
 
     def evaluate(step, onnx, extra):
@@ -301,7 +316,7 @@ def finetune_randomised(rand: Path, old: Path, work: Path, init_from: Path, step
     if 0 not in done:
         evaluate(0, shipped, {"note": "the shipped model (init_from)"})
     s = replace(TrainSettings(), data=DataSettings(forward_source="degrade"), batch=batch, crop=crop, frames=1,
-                checkpoint_every=100, threads=threads, p_mean=p_mean, lr=lr, init_from=str(shipped))
+                checkpoint_every=100, threads=threads, p_mean=p_mean, lr=lr, init_from=str(shipped), view=view)
     clips = None
     for n in range(eval_every, steps + 1, eval_every):
         snap = snaps / f"inverse_gbuffer_{n:06d}.onnx"
@@ -397,6 +412,7 @@ def ood_report(rand: Path, old: Path, work: Path, models: Path, threads: int, re
                                 "(the first protocol's streets, regenerated here)",
                  "generation": gen},
         "training": {k: log[k] for k in ("lr", "p_mean", "batch", "crop", "threads")} | {
+            "mix_old": log.get("mix_old", []), "view": log.get("view", False),
             "init_from": "the shipped models/inverse_gbuffer.onnx (sha256 in before_sha256)",
             "chosen_run": run, "chosen_step": best["step"],
             "chosen_on": "randomised val split (val_score: learning rate and step), never a test split",
@@ -473,7 +489,7 @@ def update_card(models: Path, snap_card: Path, res: dict, shipped_card: Path) ->
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("steps_to_run", nargs="+", choices=["generate", "prepare", "inverse", "forward", "cards", "validate",
-                                                        "randomised", "inverse-randomised", "ood"])
+                                                        "randomised", "mix-old", "inverse-randomised", "ood"])
     ap.add_argument("--data", type=Path, default=REPO / "scenes" / "gen", help="scene directory")
     ap.add_argument("--work", type=Path, default=REPO / "runs" / "gen", help="checkpoints")
     ap.add_argument("--models", type=Path, default=REPO / "models")
@@ -502,8 +518,16 @@ def main(argv=None) -> int:
     ap.add_argument("--lr-pilot", type=float, nargs="*", default=[],
                     help="inverse-randomised: learning rates tried for --pilot-steps first (chosen on val)")
     ap.add_argument("--pilot-steps", type=int, default=2000)
+    ap.add_argument("--view", action="store_true",
+                    help="inverse-randomised: condition the model on the capture's camera (per-pixel ray and "
+                         "world up, camera frame; the inverse contract's optional input)")
+    ap.add_argument("--mix-old", type=int, default=0,
+                    help="inverse-randomised: also train on the old generator's first N training streets "
+                         "(s100, s101, ... under --old-data; the mix-old step generates them)")
     ap.add_argument("--results", type=Path, default=REPO / "benchmarks" / "results" / "generative.json")
     a = ap.parse_args(argv)
+    if not 0 <= a.mix_old <= len(a.seeds):
+        ap.error(f"--mix-old: between 0 and the number of --seeds ({len(a.seeds)}), got {a.mix_old}")
     a.data.mkdir(parents=True, exist_ok=True)
     wall: dict = {}
     for step in a.steps_to_run:
@@ -514,7 +538,8 @@ def main(argv=None) -> int:
         elif step == "inverse-randomised":
             ft = dict(rand=a.rand_data, old=a.old_data, work=a.work, init_from=a.init_from or a.models / "inverse_gbuffer.onnx",
                       p_mean=a.p_mean if a.p_mean is not None else 2.0, batch=a.batch,
-                      crop=96 if a.crop == 64 else a.crop, threads=a.threads)
+                      crop=96 if a.crop == 64 else a.crop, threads=a.threads,
+                      mix_old=tuple(name for name, *_ in scene_plan(a.seeds))[:a.mix_old], view=a.view)
             lr = a.lr or 1e-4
             if a.lr_pilot:  # each learning rate for --pilot-steps; the best on val continues to --steps
                 logs = {r: finetune_randomised(**ft, steps=a.pilot_steps, eval_every=a.pilot_steps // 2, lr=r)
@@ -523,6 +548,9 @@ def main(argv=None) -> int:
                                                         if e["step"] == a.pilot_steps // 2 * 2))
                 print(f"learning rate chosen on val: {lr:g}", flush=True)
             finetune_randomised(**ft, steps=a.steps, eval_every=a.eval_every, lr=lr)
+        elif step == "mix-old":
+            for name, seed, env, rot in scene_plan(a.seeds)[:a.mix_old]:
+                generate_street(a.old_data / name, seed, env, rot, workers=a.workers)
         elif step == "ood":
             ood_report(a.rand_data, a.old_data, a.work, a.models, a.threads, a.results, wall, a.rand_frames)
         elif step == "generate":

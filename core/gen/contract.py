@@ -9,7 +9,8 @@ code change. :mod:`core.gen.runtime` enforces this when it opens a file.
 Metadata keys (ONNX ``metadata_props``, all values strings)
     ``brdf.contract``           contract name: ``forward_denoiser``, ``inverse_gbuffer``, ``lighting``
     ``brdf.contract_version``   ``"<major>.<minor>"``; the loader accepts the same major and a minor
-                                 <= the code's minor (minor versions only add optional metadata)
+                                 <= the code's minor (minor versions only add optional metadata
+                                 or optional inputs)
     ``brdf.frames``             frames per window F the model was trained with (int >= 1); inputs
                                  may have any F, the samplers cut clips into windows of this size
     ``brdf.spatial_multiple``   H and W must be multiples of this (the U-Net's total down-sampling);
@@ -40,8 +41,13 @@ Data spaces (shared by training, sampling and the contracts)
       (``R_cam_to_world^T d_world``), so the network sees where each light is relative to the
       camera. The map is *not* resampled (no loss of the sun's energy): the rotation is in env_dir.
 
+    * camera (``inverse_gbuffer`` 1.1, optional input ``view``): channels 0-2 the unit direction
+      of the ray through each pixel centre, channels 3-5 the world up direction (+z), both in the
+      camera frame. A posed capture knows both; with them the model need not guess the camera's
+      pitch and field of view from the image to output camera-frame normals.
+
 Versioning: bump the major version for any change of names, ranks, fixed dimensions or data
-spaces; bump the minor version for added optional metadata.
+spaces; bump the minor version for added optional metadata or an added optional input.
 """
 
 from __future__ import annotations
@@ -64,6 +70,9 @@ GBUFFER_CHANNELS = 9
 #: Slices of the 9 G-buffer channels.
 GBUFFER_SLICES = {"albedo": slice(0, 3), "roughness": slice(3, 4), "metallic": slice(4, 5),
                   "normal": slice(5, 8), "depth": slice(8, 9)}
+#: Channels of the inverse model's optional camera input ``view``: the pixel's unit ray direction
+#: (3) and the world up direction (3), both in the camera frame.
+VIEW_CHANNELS = 6
 #: Lighting contract: resolution of the low-frequency sky output (the sun is a separate output).
 LIGHT_SKY_H, LIGHT_SKY_W = 32, 64
 
@@ -91,6 +100,10 @@ class TensorSpec:
     """Element type (numpy name); every contract tensor is float32."""
     doc: str = ""
     """Meaning, range and frame of the tensor."""
+    optional: bool = False
+    """A model file may leave this input out (an older minor version, or a model trained without
+    it). When the file declares it, callers must feed it; when it does not, a fed value is
+    ignored (:meth:`core.gen.runtime.ModelSession.run`)."""
 
     @property
     def rank(self) -> int:
@@ -164,7 +177,7 @@ FORWARD_DENOISER = Contract(
 
 INVERSE_GBUFFER = Contract(
     kind="inverse_gbuffer",
-    version=(1, 0),
+    version=(1, 1),
     diffusion=True,
     doc="G-buffer prior: EDM denoiser of the 9 G-buffer channels conditioned on the RGB clip; "
         "sampled from noise (prior) or by SDEdit from rendered intrinsics (generative refinement).",
@@ -173,6 +186,10 @@ INVERSE_GBUFFER = Contract(
                    "space (albedo 3, roughness, metallic, normal 3, depth; [-1, 1]) + noise"),
         TensorSpec("sigma", ("B",), doc="EDM noise level, > 0"),
         TensorSpec("rgb", (*_GB, 3, "H", "W"), doc="input LDR frames, LDR data space [-1, 1]"),
+        TensorSpec("view", (*_GB, VIEW_CHANNELS, "H", "W"), optional=True,
+                   doc="the capture's camera (since 1.1, optional): unit ray direction of each pixel "
+                       "and the world up (+z) direction, both in the camera frame (OpenCV axes; "
+                       "core.gen.encoding.view_conditioning)"),
     ),
     outputs=(TensorSpec("x0", (*_GB, GBUFFER_CHANNELS, "H", "W"), doc="denoised G-buffer "
                         "estimate, G-buffer data space"),),

@@ -138,3 +138,27 @@ def forward_conditioning(albedo, roughness, metallic, normal_world, depth, cam_t
         env_encoded = encode_env(env_hdr, cam_to_world)
     out.update(env_encoded)
     return out
+
+
+def view_conditioning(cam_to_world, fx: float, fy: float, cx: float, cy: float, width: int,
+                      height: int) -> np.ndarray:
+    """The ``inverse_gbuffer`` contract's optional camera input for one frame: [6, H, W] float32,
+    channels 0-2 the unit ray direction through each pixel centre, channels 3-5 the world up
+    direction (+z), both in the camera frame (OpenCV axes). ``cam_to_world``: [4, 4] (or [3, 4]),
+    world metres; ``fx, fy, cx, cy``: pinhole intrinsics in pixels of the ``width`` x ``height``
+    image."""
+    c2w = require_finite_np(np.asarray(cam_to_world, np.float64), "cam_to_world")
+    if c2w.shape not in ((4, 4), (3, 4)):
+        raise ShapeError(f"cam_to_world: expected [4, 4] or [3, 4], got {c2w.shape}")
+    if not (fx > 0 and fy > 0) or width < 1 or height < 1:
+        raise ShapeError(f"intrinsics: need fx, fy > 0 and a non-empty image, got fx {fx}, fy {fy}, "
+                         f"{width}x{height}")
+    u = np.arange(width) + 0.5
+    v = np.arange(height) + 0.5
+    uu, vv = np.meshgrid(u, v)
+    ray = np.stack([(uu - cx) / fx, (vv - cy) / fy, np.ones_like(uu)], 0)
+    ray = ray / np.linalg.norm(ray, axis=0, keepdims=True)
+    up = world_to_camera_dirs(np.array([0.0, 0.0, 1.0]), c2w)
+    up = up / max(float(np.linalg.norm(up)), 1e-12)  # R is a rotation: |up| = 1 up to rounding
+    up_img = np.broadcast_to(up.reshape(3, 1, 1), (3, height, width))
+    return np.ascontiguousarray(np.concatenate([ray, up_img], 0), dtype=np.float32)

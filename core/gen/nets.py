@@ -247,27 +247,50 @@ class ForwardDenoiserModel(_EDMModel):
 
 
 class InverseGBufferModel(_EDMModel):
-    """``inverse_gbuffer`` contract: (x_t [B, F, 9, H, W], sigma [B], rgb [B, F, 3, H, W]) ->
-    ``x0`` [B, F, 9, H, W] (G-buffer data space)."""
+    """``inverse_gbuffer`` contract: (x_t [B, F, 9, H, W], sigma [B], rgb [B, F, 3, H, W]
+    [, view [B, F, 6, H, W]]) -> ``x0`` [B, F, 9, H, W] (G-buffer data space). ``view=True``
+    builds the network that also takes the contract's optional camera input."""
 
     kind = "inverse_gbuffer"
 
-    def __init__(self, settings: UNetSettings | None = None, sigma_data: float = 0.5, frames: int = 1):
-        super().__init__(ConditionalUNet(C.GBUFFER_CHANNELS, 3, C.GBUFFER_CHANNELS, settings), sigma_data, frames)
+    def __init__(self, settings: UNetSettings | None = None, sigma_data: float = 0.5, frames: int = 1,
+                 view: bool = False):
+        cond = 3 + (C.VIEW_CHANNELS if view else 0)
+        super().__init__(ConditionalUNet(C.GBUFFER_CHANNELS, cond, C.GBUFFER_CHANNELS, settings), sigma_data, frames)
+        self.view = bool(view)
 
-    def forward(self, x_t, sigma, rgb):
-        return self._denoise(x_t, sigma, rgb, None)
+    def forward(self, x_t, sigma, rgb, view=None):
+        """A ``view`` given to a network built without it is ignored, as the runtime does for a
+        file without the optional input."""
+        if not self.view:
+            return self._denoise(x_t, sigma, rgb, None)
+        if view is None:
+            raise ShapeError("view: this network was built with the camera input; give view [B, F, 6, H, W]")
+        return self._denoise(x_t, sigma, torch.cat([rgb, view], dim=2), None)
+
+    def settings_dict(self) -> dict:
+        return {**super().settings_dict(), "view": self.view}
 
 
 MODEL_CLASSES = {"forward_denoiser": ForwardDenoiserModel, "inverse_gbuffer": InverseGBufferModel}
 
 
 def build_model(kind: str, settings: UNetSettings | None = None, sigma_data: float = 0.5,
-                frames: int = 1) -> _EDMModel:
-    """A fresh (random-weight) model of contract ``kind``."""
+                frames: int = 1, view: bool = False) -> _EDMModel:
+    """A fresh (random-weight) model of contract ``kind`` (``view``: the inverse model's optional
+    camera input)."""
     if kind not in MODEL_CLASSES:
         raise ConfigError(f"kind: no network for {kind!r} (networks exist for {sorted(MODEL_CLASSES)})")
-    return MODEL_CLASSES[kind](settings, sigma_data, frames)
+    if view and kind != "inverse_gbuffer":
+        raise ConfigError(f"view: only the inverse_gbuffer network takes the camera input, not {kind!r}")
+    return MODEL_CLASSES[kind](settings, sigma_data, frames, **({"view": True} if view else {}))
+
+
+def model_input_names(model: _EDMModel) -> list[str]:
+    """The contract inputs this network takes, in contract order (optional ones it was built
+    without left out)."""
+    con = C.get_contract(model.kind)
+    return [s.name for s in con.inputs if not s.optional or getattr(model, s.name, False)]
 
 
 def example_inputs(kind: str, batch: int = 1, frames: int = 1, height: int = 32, width: int = 48,
@@ -285,6 +308,9 @@ def example_inputs(kind: str, batch: int = 1, frames: int = 1, height: int = 32,
         elif spec.name in ("normal", "env_dir", "ray_dir"):
             t = torch.randn(shape, generator=g)
             t = t / t.norm(dim=-3, keepdim=True).clamp_min(1e-6)
+        elif spec.name == "view":  # two unit directions (ray, up)
+            t = torch.randn(shape, generator=g).unflatten(-3, (2, 3))
+            t = (t / t.norm(dim=-3, keepdim=True).clamp_min(1e-6)).flatten(-4, -3)
         elif spec.name in ("x_t", "rgb"):
             t = torch.randn(shape, generator=g)
         else:
@@ -303,9 +329,9 @@ def export_onnx(model: _EDMModel, path: str | Path, *, extra_metadata: dict[str,
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     ex = example_inputs(model.kind, 1, model.frames, *example_hw)
-    names = [s.name for s in con.inputs]
+    names = model_input_names(model)
     dyn: dict[str, dict[int, str]] = {}
-    for spec in (*con.inputs, *con.outputs):
+    for spec in (*[s for s in con.inputs if s.name in names], *con.outputs):
         dyn[spec.name] = {i: d for i, d in enumerate(spec.dims) if isinstance(d, str)}
     model = model.eval()
     with atomic_output(path, suffix=".onnx") as tmp:

@@ -58,6 +58,12 @@ class ModelInfo:
     """Largest trained noise level (diffusion contracts), else None."""
     metadata: dict
     """All ``metadata_props`` of the file."""
+    input_names: tuple[str, ...] = ()
+    """The graph inputs the file declares (the contract's, less optional ones it leaves out)."""
+
+    def takes(self, name: str) -> bool:
+        """True when the file declares input ``name`` (for optional contract inputs)."""
+        return name in self.input_names
 
 
 def _dims_of(arg) -> tuple:
@@ -119,6 +125,8 @@ def validate_session(sess, path: Path, kind: str | None = None) -> ModelInfo:
         by_name = {a.name: a for a in args}
         for spec in specs:
             a = by_name.pop(spec.name, None)
+            if a is None and spec.optional:
+                continue
             if a is None:
                 problems.append(f"{what} {spec.name!r} missing (has {sorted(x.name for x in args)})")
                 continue
@@ -148,7 +156,8 @@ def validate_session(sess, path: Path, kind: str | None = None) -> ModelInfo:
         smax = _meta_float(meta, C.META_SIGMA_MAX, path)
         if smin >= smax:
             raise ModelLoadError(f"{path}: metadata sigma_min {smin} >= sigma_max {smax}")
-    return ModelInfo(path, con, ver, frames, multiple, sd, smin, smax, meta)
+    return ModelInfo(path, con, ver, frames, multiple, sd, smin, smax, meta,
+                     tuple(a.name for a in sess.get_inputs()))
 
 
 class ModelSession:
@@ -178,8 +187,11 @@ class ModelSession:
         bound: dict[str, int] = {}
         arrays = {}
         for spec in con.inputs:
+            if spec.optional and not self.info.takes(spec.name):
+                continue  # the file was made without it: a fed value is ignored (contract docs)
             if spec.name not in inputs:
-                raise ShapeError(f"{self.path}: input {spec.name!r} missing")
+                extra_doc = f" (optional in the contract, but this model takes it: {spec.doc})" if spec.optional else ""
+                raise ShapeError(f"{self.path}: input {spec.name!r} missing{extra_doc}")
             a = inputs[spec.name]
             if hasattr(a, "detach"):  # torch tensor
                 a = a.detach().cpu().numpy()
@@ -207,7 +219,7 @@ class ModelSession:
 
     def run(self, **inputs) -> dict[str, np.ndarray]:
         """Run the model on the contract's named inputs (numpy arrays or torch tensors, cast to
-        float32). Image inputs whose H, W are not multiples of ``spatial_multiple`` are padded
+        float32); an optional contract input the file does not declare is ignored. Image inputs whose H, W are not multiples of ``spatial_multiple`` are padded
         by replication and the outputs cropped back. Returns {output name: float32 array}."""
         arrays, bound = self._check_inputs(inputs)
         m = self.info.spatial_multiple
@@ -216,7 +228,7 @@ class ModelSession:
         pw = (-w) % m if w is not None else 0
         if ph or pw:
             for spec in self.info.contract.inputs:
-                if spec.dims[-2:] == ("H", "W"):
+                if spec.dims[-2:] == ("H", "W") and spec.name in arrays:
                     pad = [(0, 0)] * (spec.rank - 2) + [(0, ph), (0, pw)]
                     arrays[spec.name] = np.pad(arrays[spec.name], pad, mode="edge")
         with self._lock:

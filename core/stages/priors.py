@@ -37,7 +37,7 @@ import torch
 
 from core.errors import ConfigError, FormatError, ModelLoadError, NumericalError
 from core.gen.edm import GENERATE_SAMPLER, OnnxDenoiser, SamplerSettings, generate, sdedit
-from core.gen.encoding import camera_to_world_dirs, decode_gbuffer, ldr_to_data
+from core.gen.encoding import camera_to_world_dirs, decode_gbuffer, ldr_to_data, view_conditioning
 from core.gen.runtime import load_model
 from core.io.atomic import atomic_output
 
@@ -134,19 +134,26 @@ def run_inverse_model(bundle, split: str = "train", *, model: str | Path = DEFAU
         raise ConfigError(f"bundle: no {split!r} frames to compute G-buffer priors from")
     if anchors is not None and (sigma_tau is None or not sigma_tau > 0):
         raise ConfigError(f"sigma_tau: SDEdit of anchors needs a noise level > 0, got {sigma_tau!r}")
-    den = OnnxDenoiser(load_model(model, kind="inverse_gbuffer", threads=threads))
+    sess = load_model(model, kind="inverse_gbuffer", threads=threads)
+    den = OnnxDenoiser(sess)
     layers: dict[str, dict[str, np.ndarray]] = {}
     for ci, clip in enumerate(clips):
         rgb = torch.from_numpy(np.stack([ldr_to_data(bundle.load_image(f)).transpose(2, 0, 1) for f in clip]))
         shape = (len(clip), 9, rgb.shape[2], rgb.shape[3])
+        cond = {"rgb": rgb}
+        if sess.info.takes("view"):  # a model trained on the capture's camera (contract 1.1)
+            cam = bundle.manifest.cameras[clip[0].camera]
+            cond["view"] = torch.from_numpy(np.stack([
+                view_conditioning(f.cam_to_world, cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height)
+                for f in clip]))
         if anchors is None:
-            y = generate(den, shape, {"rgb": rgb}, GENERATE_SAMPLER)
+            y = generate(den, shape, cond, GENERATE_SAMPLER)
         else:
             missing = [f.id for f in clip if f.id not in anchors]
             if missing:
                 raise ConfigError(f"anchors: no rendered intrinsics for frame(s) {missing[:5]}")
             x_in = torch.from_numpy(np.stack([anchors[f.id] for f in clip]).astype(np.float32))
-            y = sdedit(den, x_in, {"rgb": rgb}, SamplerSettings(sigma_tau=float(sigma_tau), steps=steps))
+            y = sdedit(den, x_in, cond, SamplerSettings(sigma_tau=float(sigma_tau), steps=steps))
         y = y.numpy()
         if not np.isfinite(y).all():
             raise NumericalError(f"inverse model: non-finite G-buffer output for camera {clip[0].camera}")

@@ -16,6 +16,8 @@ channels-first float32:
                reconstruction, as at inference), else from the ground truth
     gbuffer    [9, H, W]  inverse target: ground-truth G-buffer data space
     rgb        [3, H, W]  inverse conditioning: the bundle's LDR image (``images/``, 8-bit), 2 ldr - 1
+    view       [6, H, W]  inverse conditioning (optional contract input): the frame's camera, ray
+               directions and world up in the camera frame (:func:`core.gen.encoding.view_conditioning`)
     sky        [1, H, W]  1 = sky (from the bundle's sky mask, or depth 0)
 
 PBR renders (``pbr`` source) are looked up as ``<pbr_root>/<bundle name>/<frame id>.exr`` (layers
@@ -150,6 +152,8 @@ def load_clips(root: str | Path, settings: DataSettings | None = None, kinds=("f
             if "inverse" in kinds:
                 rec["gbuffer"] = E.encode_gbuffer(gt["albedo"], gt["roughness"], gt["metallic"], n_cam, gt["depth"])
                 rec["rgb"] = _chw(E.ldr_to_data(b.load_image(fr)))
+                cam = m.cameras[fr.camera]
+                rec["view"] = E.view_conditioning(c2w, cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height)
             if "forward" in kinds:
                 target = hdr_to_ldr(gt["rgb"], m.ldr_exposure, m.ldr_gamma)
                 g = gt
@@ -183,19 +187,21 @@ class ClipDataset:
     forward conditioning; ``inverse_gbuffer`` -> ``x0`` (G-buffer) and ``rgb``. Every tensor is
     [B, F, C, crop, crop] except the env encodings [B, F, 3, 64, 128]."""
 
-    def __init__(self, clips: list[list[dict]], kind: str, frames: int = 1, crop: int = 64, flip: bool = True):
+    def __init__(self, clips: list[list[dict]], kind: str, frames: int = 1, crop: int = 64, flip: bool = True,
+                 view: bool = False):
         if kind not in ("forward_denoiser", "inverse_gbuffer"):
             raise ConfigError(f"kind: no dataset for {kind!r}")
         if crop % 8:
             raise ConfigError(f"crop: must be a multiple of 8, got {crop}")
-        self.kind, self.frames, self.crop, self.flip = kind, frames, crop, flip
+        self.kind, self.frames, self.crop, self.flip, self.view = kind, frames, crop, flip, view
         self.clips = [c for c in clips if len(c) >= frames]
         if not self.clips:
             raise ConfigError(f"no clip has >= {frames} frames ({len(clips)} clip(s) given)")
         h, w = self.clips[0][0]["sky"].shape[1:]
         if crop > min(h, w):
             raise ConfigError(f"crop {crop} larger than the frames ({h}x{w})")
-        need = ("target_ldr", "input_ldr", *FORWARD_COND) if kind == "forward_denoiser" else ("gbuffer", "rgb")
+        need = ("target_ldr", "input_ldr", *FORWARD_COND) if kind == "forward_denoiser" else \
+            ("gbuffer", "rgb", *(("view",) if view else ()))
         missing = [k for k in need if k not in self.clips[0][0]]
         if missing:
             raise ConfigError(f"clips lack {missing} (load them with kinds including "
@@ -240,7 +246,14 @@ class ClipDataset:
             g = img("gbuffer")
             if flip:
                 g[:, 5] *= -1  # normal x (camera frame) of the G-buffer data space
-            return {"x0": g, "rgb": img("rgb"), "sky": img("sky")}
+            out = {"x0": g, "rgb": img("rgb"), "sky": img("sky")}
+            if self.view:
+                v = img("view")
+                if flip:  # a mirrored image is seen by a mirrored camera: x of the ray and of up
+                    v[:, 0] *= -1
+                    v[:, 3] *= -1
+                out["view"] = v
+            return out
         d = {"x0": img("target_ldr"), "x_in": img("input_ldr"), "sky": img("sky"),
              "normal": img("normal", True), "depth": img("depth"), "albedo": img("albedo"),
              "roughness": img("roughness"), "metallic": img("metallic"),

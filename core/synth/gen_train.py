@@ -100,6 +100,10 @@ class TrainSettings:
     Ignored when a checkpoint is resumed."""
     data: DataSettings = field(default_factory=DataSettings)
     """How bundles become tensors (forward source, held-out seeds/rotations)."""
+    view: bool = False
+    """Inverse model only: also condition on the capture's camera (the contract's optional
+    ``view`` input: per-pixel ray and world up, camera frame). With ``init_from`` a model made
+    without it, the new input's stem weights start at zero (the start model's outputs exactly)."""
 
     def __post_init__(self) -> None:
         if self.batch < 1 or self.crop < 8 or self.crop % 8 or self.frames < 1:
@@ -110,6 +114,8 @@ class TrainSettings:
                               f"{self.paired_fraction}")
         if self.checkpoint_every < 1 or self.threads < 1:
             raise ConfigError("checkpoint_every and threads must be >= 1")
+        if not isinstance(self.view, bool):
+            raise ConfigError(f"view: must be a bool, got {self.view!r}")
 
 
 @dataclass
@@ -157,6 +163,8 @@ def edm_loss(model, batch: dict[str, torch.Tensor], s: TrainSettings, gen: torch
                                       "env_ldr", "env_log", "env_dir")}
     else:
         cond = {"rgb": batch["rgb"]}
+        if getattr(model, "view", False):
+            cond["view"] = batch["view"]
     d = model(x_t=x_t, sigma=sigma, **cond)
     w = edm_weight(sigma, s.sigma_data).reshape(b, 1, 1, 1, 1)
     return (w * (d - x0) ** 2).mean()
@@ -200,14 +208,19 @@ def write_model_card(onnx_path: str | Path, kind: str, *, network: dict, trainin
 
 
 def _config_key(kind: str, s: TrainSettings) -> str:
-    return json.dumps({"kind": kind, "unet": asdict(s.unet), "frames": s.frames, "sigma_data": s.sigma_data},
-                      sort_keys=True)
+    key = {"kind": kind, "unet": asdict(s.unet), "frames": s.frames, "sigma_data": s.sigma_data}
+    if s.view:
+        key["view"] = True  # absent when False: checkpoints made before the field still resume
+    return json.dumps(key, sort_keys=True)
 
 
 def load_onnx_weights(model: torch.nn.Module, onnx_path: str | Path) -> None:
     """Copy the weights of an exported ONNX model into ``model`` (its initializers carry the
     state-dict names); ModelLoadError naming the file when it cannot be read or a tensor is
-    missing or of another shape."""
+    missing or of another shape. One widening is allowed: a stem convolution with more input
+    channels than the file's (a network built with more conditioning channels appended, e.g. the
+    inverse model's ``view``) gets the file's weights for the first channels and zeros for the
+    rest, so it computes exactly what the file's model did."""
     import onnx
     from onnx import numpy_helper
 
@@ -221,6 +234,10 @@ def load_onnx_weights(model: torch.nn.Module, onnx_path: str | Path) -> None:
         if k not in init:
             raise ModelLoadError(f"{onnx_path}: no weight {k!r} (another network?)")
         a = torch.from_numpy(numpy_helper.to_array(init[k]).copy())
+        if (k == "net.stem.weight" and a.ndim == 4 and a.shape[0] == v.shape[0] and a.shape[1] < v.shape[1]
+                and a.shape[2:] == v.shape[2:]):
+            # pixel_unshuffle keeps channel blocks in order: appended inputs are the last channels
+            a = torch.cat([a, torch.zeros(v.shape[0], v.shape[1] - a.shape[1], *v.shape[2:], dtype=a.dtype)], 1)
         if tuple(a.shape) != tuple(v.shape):
             raise ModelLoadError(f"{onnx_path}: weight {k!r} has shape {tuple(a.shape)}, the network "
                                  f"{tuple(v.shape)}")
@@ -264,10 +281,12 @@ def train_model(kind: str, data_dirs, out_dir: str | Path, steps: int, *, settin
                 raise ConfigError(f"no training bundles left after holding out seeds {s.data.held_out_seeds} "
                                   f"/ rotations {s.data.held_out_rotations} (of {len(list(data_dirs))})")
             clips = [c for d in train_dirs for c in load_clips(d, s.data, kinds)]
-        ds = ClipDataset(clips, kind, s.frames, s.crop)
+        if s.view and kind != "inverse_gbuffer":
+            raise ConfigError(f"view: only the inverse model takes the camera input, not {kind!r}")
+        ds = ClipDataset(clips, kind, s.frames, s.crop, view=s.view)
 
         torch.manual_seed(s.seed)
-        model = build_model(kind, s.unet, s.sigma_data, s.frames)
+        model = build_model(kind, s.unet, s.sigma_data, s.frames, view=s.view)
         if s.init_from:
             load_onnx_weights(model, s.init_from)
         ema = copy.deepcopy(model).requires_grad_(False) if s.ema_decay > 0 else None
@@ -388,7 +407,10 @@ def evaluate_model(kind: str, onnx_path: str | Path, bundle_dirs, data: DataSett
             else:
                 rgb = torch.from_numpy(np.stack([f["rgb"] for f in clip]))
                 g = torch.from_numpy(np.stack([f["gbuffer"] for f in clip]))
-                y = generate(den, tuple(g.shape), {"rgb": rgb}, sampler)
+                cond = {"rgb": rgb}
+                if sess.info.takes("view"):
+                    cond["view"] = torch.from_numpy(np.stack([f["view"] for f in clip]))
+                y = generate(den, tuple(g.shape), cond, sampler)
                 mask = torch.from_numpy(np.stack([f["sky"][0] for f in clip])) < 0.5
                 sl = C.GBUFFER_SLICES
                 hw = lambda a, k: a[:, sl[k]].permute(0, 2, 3, 1)  # noqa: E731

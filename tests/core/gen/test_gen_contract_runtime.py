@@ -168,3 +168,34 @@ def test_bad_inputs_named(small_models):
     del ex["env_dir"]
     with pytest.raises(ShapeError, match="env_dir"):
         sess.run(**ex)
+
+
+def test_inverse_camera_input_is_optional(small_models, tmp_path):
+    """The inverse contract's ``view`` input (1.1) is optional: a file without it loads, and a
+    value fed to it is ignored; a file with it matches its torch network and names the input
+    when a caller leaves it out."""
+    from core.gen.nets import UNetSettings, build_model, export_onnx
+
+    plain_model, plain_path = small_models["inv"]
+    plain = load_model(plain_path, threads=1)
+    ex = example_inputs("inverse_gbuffer", batch=1, frames=2, height=16, width=24, seed=2)
+    assert not plain.info.takes("view")
+    without = plain.run(**_np({k: v for k, v in ex.items() if k != "view"}))["x0"]
+    assert np.array_equal(plain.run(**_np(ex))["x0"], without)
+    torch.manual_seed(3)
+    model = build_model("inverse_gbuffer", UNetSettings(base_channels=8, emb_dim=32), frames=2, view=True)
+    with torch.no_grad():  # no zero-initialised layers (the head starts at zero)
+        for p in model.parameters():
+            p.add_(torch.randn(p.shape) * 0.05)
+    model.eval()
+    sess = load_model(export_onnx(model, tmp_path / "inv_view.onnx"), kind="inverse_gbuffer", threads=1)
+    assert sess.info.takes("view") and sess.info.version == (1, 1)
+    with torch.no_grad():
+        ref = model(**ex).numpy()
+    out = sess.run(**_np(ex))["x0"]
+    assert np.abs(out - ref).max() < 1e-4
+    other = _np(ex)
+    other["view"] = -other["view"]
+    assert np.abs(sess.run(**other)["x0"] - out).max() > 1e-4  # the camera input is used
+    with pytest.raises(ShapeError, match="input 'view' missing"):
+        sess.run(**_np({k: v for k, v in ex.items() if k != "view"}))

@@ -226,3 +226,29 @@ def test_forward_conditioning(rng, pose):
         forward_conditioning(albedo, rough, metal, normal_world, depth, pose)
     with pytest.raises(ShapeError, match="depth"):
         forward_conditioning(albedo, rough, metal, normal_world, depth[..., None].repeat(2, -1), pose, env_hdr=env)
+
+
+def test_view_conditioning_rays_and_up():
+    """view_conditioning: unit rays through the pixel centres (the principal point looks down +z)
+    and the world up in the camera frame, for a level camera and one pitched down by 10 deg."""
+    from core.gen.encoding import view_conditioning
+
+    level = look_at(np.array([0.0, 0.0, 1.5]), np.array([0.0, 10.0, 1.5]))
+    v = view_conditioning(level, 50.0, 50.0, 4.0, 3.0, W, H)
+    assert v.shape == (6, H, W) and v.dtype == np.float32
+    assert np.allclose(np.linalg.norm(v[:3], axis=0), 1, atol=1e-6)
+    assert np.allclose(v[:3, 2, 3], np.array([-0.5, -0.5, 50.0]) / np.linalg.norm([-0.5, -0.5, 50.0]), atol=1e-6)
+    assert v[0, 0, 0] < 0 and v[0, 0, -1] > 0 and v[1, 0, 0] < 0 and v[1, -1, 0] > 0  # x right, y down
+    assert np.allclose(v[3:], np.array([0.0, -1.0, 0.0])[:, None, None], atol=1e-6)  # up = -y (OpenCV)
+    t = np.radians(10.0)
+    down = look_at(np.array([0.0, 0.0, 1.5]), np.array([0.0, 10.0, 1.5 - 10.0 * np.tan(t)]))
+    up = view_conditioning(down, 50.0, 50.0, 4.0, 3.0, W, H)[3:, 0, 0]
+    assert np.allclose(up, [0.0, -np.cos(t), -np.sin(t)], atol=1e-6)  # a camera pitched down sees up lean back
+    with pytest.raises(ShapeError, match="cam_to_world"):
+        view_conditioning(np.eye(3), 50.0, 50.0, 4.0, 3.0, W, H)
+    with pytest.raises(ShapeError, match="intrinsics"):
+        view_conditioning(level, 0.0, 50.0, 4.0, 3.0, W, H)
+    bad = level.copy()
+    bad[0, 0] = np.nan
+    with pytest.raises(NumericalError, match="cam_to_world"):
+        view_conditioning(bad, 50.0, 50.0, 4.0, 3.0, W, H)

@@ -124,3 +124,53 @@ def test_generate_defaults_to_one_step_posterior_mean():
     y = generate(den, (2, 9, 8, 8), {"rgb": torch.zeros(2, 3, 8, 8)})
     assert GENERATE_SAMPLER.steps == 1 and calls == [GENERATE_SAMPLER.sigma_max]
     assert torch.allclose(y, torch.full_like(y, 0.25), atol=1e-4)  # x - sigma (x - D) / sigma, x ~ 80 N(0, 1)
+
+
+def test_camera_input_starts_from_a_model_without_it(clips, tmp_path):
+    """TrainSettings.view: a network with the camera input initialised from a file without it
+    (zero stem weights for the new channels) computes exactly what the file computed, whatever
+    the camera; it then trains, and its export declares the optional input."""
+    import torch
+
+    from core.gen.nets import build_model, example_inputs, export_onnx
+    from core.synth.gen_train import load_onnx_weights
+
+    torch.manual_seed(3)
+    src = build_model("inverse_gbuffer", TINY_NET)
+    with torch.no_grad():
+        for p in src.parameters():
+            p.normal_(0.0, 0.1)
+    path = export_onnx(src.eval(), tmp_path / "plain.onnx")
+    dst = build_model("inverse_gbuffer", TINY_NET, view=True)
+    load_onnx_weights(dst, path)
+    ex = example_inputs("inverse_gbuffer", batch=2, frames=1, height=16, width=24, seed=4)
+    with torch.no_grad():
+        ref = src(ex["x_t"], ex["sigma"], ex["rgb"])
+        out = dst.eval()(ex["x_t"], ex["sigma"], ex["rgb"], ex["view"])
+        out2 = dst(ex["x_t"], ex["sigma"], ex["rgb"], -ex["view"])
+    assert ref.abs().max() > 1e-3 and torch.allclose(out, ref, atol=1e-6) and torch.allclose(out2, ref, atol=1e-6)
+    s = TrainSettings(batch=2, crop=16, frames=1, lr=2e-3, warmup=2, threads=1, unet=TINY_NET, view=True,
+                      init_from=str(path))
+    r = train_model("inverse_gbuffer", [SCENE], tmp_path / "inv_view", 20, settings=s, clips=clips)
+    assert np.all(np.isfinite(r.losses))
+    sess = load_model(r.onnx_path, kind="inverse_gbuffer", threads=1)
+    assert sess.info.takes("view") and not load_model(path, threads=1).info.takes("view")
+    card = json.loads(r.card_path.read_text())
+    assert card["network"]["view"] is True
+    with pytest.raises(ConfigError, match="view: only the inverse"):
+        train_model("forward_denoiser", [SCENE], tmp_path / "fwd_view", 2, settings=s, clips=clips)
+
+
+def test_dataset_camera_input_follows_the_flip(clips):
+    """The camera input of a mirrored crop is the mirrored camera's: the x components of the ray
+    and of the up direction change sign with the image."""
+    ds = ClipDataset(clips, "inverse_gbuffer", frames=1, crop=16, view=True)
+    win = clips[0][:1]
+    plain, flipped = ds._items(win, 40, 100, False), ds._items(win, 40, 100, True)
+    v, fv = plain["view"][0], flipped["view"][0]
+    assert v.shape == (6, 16, 16) and np.allclose(np.linalg.norm(v[:3], axis=0), 1, atol=1e-5)
+    assert np.allclose(fv[0], -v[0][:, ::-1]) and np.allclose(fv[1:3], v[1:3][:, :, ::-1])
+    assert np.allclose(fv[3], -v[3]) and np.allclose(fv[4:], v[4:])
+    assert np.allclose(flipped["x0"][0, 5], -plain["x0"][0, 5][:, ::-1])  # normal x, as before
+    with pytest.raises(ConfigError, match="view"):
+        ClipDataset([[{k: f[k] for k in f if k != "view"} for f in c] for c in clips], "inverse_gbuffer", view=True)
