@@ -46,6 +46,14 @@ Usage::
     # models/README.md: about 57 min of generation + 36 min of training on a shared 2-core machine)
     python benchmarks/train_generative.py randomised inverse-randomised ood --rand-train 20 --threads 1 \
         --lr-pilot 1e-4 3e-4 --steps 18000 --work /root/brdf_data/runs
+    # the run of 2026-11-28 (36 randomised streets + s100-s105, with and without the camera input;
+    # about 70 min of generation + 40 min of training): the chosen snapshot is
+    # models/candidates/inverse_gbuffer_view.onnx
+    python benchmarks/train_generative.py randomised --rand-train 36 --old-streets v9 v10 h7 h8
+    python benchmarks/train_generative.py mix-old --mix-old 6 --workers 1
+    python benchmarks/train_generative.py inverse-randomised --lr 3e-4 --steps 4000 --mix-old 6 --threads 1
+    python benchmarks/train_generative.py inverse-randomised --lr 3e-4 --steps 10000 --mix-old 6 --view --threads 2
+    python benchmarks/train_generative.py ood --threads 2
 
 The held-out evaluation for ``benchmarks/results/generative.json`` is
 ``python benchmarks/bench_generative.py --scenes <data>/h7 <data>/h8``.

@@ -146,7 +146,7 @@ def view_conditioning(cam_to_world, fx: float, fy: float, cx: float, cy: float, 
     channels 0-2 the unit ray direction through each pixel centre, channels 3-5 the world up
     direction (+z), both in the camera frame (OpenCV axes). ``cam_to_world``: [4, 4] (or [3, 4]),
     world metres; ``fx, fy, cx, cy``: pinhole intrinsics in pixels of the ``width`` x ``height``
-    image."""
+    image (a camera's lens distortion is not applied: the rays are the pinhole model's)."""
     c2w = require_finite_np(np.asarray(cam_to_world, np.float64), "cam_to_world")
     if c2w.shape not in ((4, 4), (3, 4)):
         raise ShapeError(f"cam_to_world: expected [4, 4] or [3, 4], got {c2w.shape}")

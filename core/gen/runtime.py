@@ -219,8 +219,9 @@ class ModelSession:
 
     def run(self, **inputs) -> dict[str, np.ndarray]:
         """Run the model on the contract's named inputs (numpy arrays or torch tensors, cast to
-        float32); an optional contract input the file does not declare is ignored. Image inputs whose H, W are not multiples of ``spatial_multiple`` are padded
-        by replication and the outputs cropped back. Returns {output name: float32 array}."""
+        float32); an optional contract input the file does not declare is ignored. Image inputs
+        whose H, W are not multiples of ``spatial_multiple`` are padded by replication and the
+        outputs cropped back. Returns {output name: float32 array}."""
         arrays, bound = self._check_inputs(inputs)
         m = self.info.spatial_multiple
         h, w = bound.get("H"), bound.get("W")
