@@ -46,7 +46,7 @@ def test_priors_feed_the_camera_to_a_model_that_takes_it(tiny_scene, tmp_path, v
     got = pri.layers[f0[0].id]
     for k in ("albedo", "roughness", "metallic", "normal"):
         assert np.isfinite(got[k]).all() and np.allclose(got[k], want[k], atol=1e-5), k
-    if view:  # the same network without the camera input gives other priors
+    if view:  # the same network fed another camera (negated rays and up) gives other priors
         cond.pop("view")
         other = generate(den, (len(f0), 9, rgb.shape[2], rgb.shape[3]), {**cond, "view": -torch.from_numpy(
             np.stack([view_conditioning(f.cam_to_world, cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height)
