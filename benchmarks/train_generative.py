@@ -274,26 +274,37 @@ def eval_streets(onnx: Path, dirs, threads: int) -> dict:
 
 def finetune_randomised(rand: Path, old: Path, work: Path, init_from: Path, steps: int, eval_every: int, lr: float,
                         p_mean: float, batch: int, crop: int, threads: int, mix_old: tuple[str, ...] = (),
-                        view: bool = False) -> dict:
+                        view: bool = False, shipped_model: Path | None = None) -> dict:
     """Fine-tune the inverse model on the randomised train split (plus the old generator's
     training streets ``mix_old`` under ``old``, so that the model keeps what it knew of the
     streets the pipeline's default scene comes from); every ``eval_every`` steps export a snapshot
     and score it on the validation streets only (randomised val, old v9/v10). ``view``: the network
     also takes the capture's camera (contract 1.1's optional input; its new stem weights start at
-    zero, so step 0 is the shipped model)."""
+    zero, so step 0 is the init model).
+
+    ``shipped_model`` (default ``init_from``) is the product's model, the "before" of the ``ood``
+    step; it is copied once to ``<work>/inverse_randomised_shipped.onnx``. A fine-tune that starts
+    from another file (a candidate) is a run of its own, named with the init file's stem."""
     from core.synth.gen_data import DataSettings, load_clips
     from core.synth.gen_train import TrainSettings, train_model
 
+    shipped_model = Path(shipped_model or init_from)
     mix_tag = f"_mix{len(mix_old)}" if mix_old else ""
-    out = work / f"inverse_randomised_lr{lr:g}{mix_tag}{'_view' if view else ''}"  # one run per variant, resumable
+    init_tag = "" if Path(init_from).resolve() == shipped_model.resolve() else f"_from_{Path(init_from).stem}"
+    out = work / f"inverse_randomised_lr{lr:g}{mix_tag}{'_view' if view else ''}{init_tag}"  # one run per variant
     snaps = out / "snapshots"
     snaps.mkdir(parents=True, exist_ok=True)
-    shipped = work / "inverse_randomised_shipped.onnx"  # the model before the fine-tune ("before")
+    shipped = work / "inverse_randomised_shipped.onnx"  # the product's model before any fine-tune ("before")
     if not shipped.is_file():
-        shutil.copy2(init_from, shipped)
-        card = Path(init_from).with_name(Path(init_from).stem + ".card.json")
+        shutil.copy2(shipped_model, shipped)
+        card = shipped_model.with_name(shipped_model.stem + ".card.json")
         if card.is_file():
             shutil.copy2(card, shipped.with_name(shipped.stem + ".card.json"))
+    init = shipped
+    if init_tag:  # the run's own copy of its start model (step 0 of its log)
+        init = out / "init.onnx"
+        if not init.is_file():
+            shutil.copy2(init_from, init)
     train_dirs, val = split_dirs(rand, "train"), split_dirs(rand, "val")
     missing = [n for n in mix_old if not (old / n / "bundle.json").is_file()]
     if missing:
@@ -306,7 +317,7 @@ def finetune_randomised(rand: Path, old: Path, work: Path, init_from: Path, step
         raise SystemExit(f"no randomised train/val bundles under {rand} (run the randomised step first)")
     log_p = out / "log.json"
     log = json.loads(log_p.read_text()) if log_p.is_file() else {"entries": []}
-    log.update({"init_from": str(shipped), "train": [d.name for d in train_dirs], "val": [d.name for d in val],
+    log.update({"init_from": str(init), "init_is_shipped": not init_tag, "train": [d.name for d in train_dirs], "val": [d.name for d in val],
                 "old_val": [d.name for d in old_val], "lr": lr, "p_mean": p_mean, "batch": batch, "crop": crop,
                 "threads": threads, "mix_old": list(mix_old), "view": view, "score": "val_score (benchmarks/train_generative.py)"})
     done = {e["step"] for e in log["entries"]}
@@ -322,9 +333,9 @@ def finetune_randomised(rand: Path, old: Path, work: Path, init_from: Path, step
               f"score {e['score_val']:.3f}", flush=True)
 
     if 0 not in done:
-        evaluate(0, shipped, {"note": "the shipped model (init_from)"})
+        evaluate(0, init, {"note": "the start model (init_from)" + ("" if init_tag else ": the shipped model")})
     s = replace(TrainSettings(), data=DataSettings(forward_source="degrade"), batch=batch, crop=crop, frames=1,
-                checkpoint_every=100, threads=threads, p_mean=p_mean, lr=lr, init_from=str(shipped), view=view)
+                checkpoint_every=100, threads=threads, p_mean=p_mean, lr=lr, init_from=str(init), view=view)
     clips = None
     for n in range(eval_every, steps + 1, eval_every):
         snap = snaps / f"inverse_gbuffer_{n:06d}.onnx"
@@ -381,7 +392,15 @@ def ood_report(rand: Path, old: Path, work: Path, models: Path, threads: int, re
     figs = {}
     for tag, onnx in models_.items():
         f = {}
-        entry = next(e for e in log["entries"] if e["step"] == (0 if tag == "before" else best["step"]))
+        if tag == "before":  # step 0 of a run that started from the shipped model, else scored here
+            entry = next((e for lg in runs.values() if lg.get("init_is_shipped", True)
+                          for e in lg["entries"] if e["step"] == 0), None)
+        else:
+            entry = next(e for e in log["entries"] if e["step"] == best["step"])
+        if entry is None:
+            v = eval_streets(onnx, split_dirs(rand, "val"), threads)
+            ov = [old / n for n in OLD_VAL if (old / n / "bundle.json").is_file()]
+            entry = {"val": v, "score_val": val_score(v["mean"]), "old_val": eval_streets(onnx, ov, threads) if ov else None}
         f["val"] = {**entry["val"], "score": entry["score_val"]}
         if entry.get("old_val"):
             f["old_val"] = entry["old_val"]
@@ -408,7 +427,8 @@ def ood_report(rand: Path, old: Path, work: Path, models: Path, threads: int, re
     gen = json.loads((rand / "generation.json").read_text()) if (rand / "generation.json").is_file() else {}
     settings = RandomisationSettings(distortion_prob=0.0)
     res = {
-        "model": "inverse_gbuffer", "sampler": "core.gen.edm.GENERATE_SAMPLER (one Euler step from sigma 80)",
+        "model": "inverse_gbuffer", "sampler": ("core.gen.edm.GENERATE_SAMPLER (one Euler step from sigma 80), mean of the "
+                                              "core.gen.gbuffer_ensemble.EnsembleSettings() ensemble (2 noise draws x mirror)"),
         "metrics": "per street: mean over its clips of albedo si-PSNR (dB), roughness / metallic RMSE, normal MAE "
                    "(deg), non-sky pixels (core.synth.gen_train.evaluate_model); split figure: mean over its streets",
         "targets_ood": OOD_TARGETS,
@@ -421,7 +441,8 @@ def ood_report(rand: Path, old: Path, work: Path, models: Path, threads: int, re
                  "generation": gen},
         "training": {k: log[k] for k in ("lr", "p_mean", "batch", "crop", "threads")} | {
             "mix_old": log.get("mix_old", []), "view": log.get("view", False),
-            "init_from": "the shipped models/inverse_gbuffer.onnx (sha256 in before_sha256)",
+            "init_from": ("the shipped models/inverse_gbuffer.onnx (sha256 in before_sha256)"
+                          if log.get("init_is_shipped", True) else f"{log['init_from']} (a candidate; sha256 in init_sha256)"),
             "chosen_run": run, "chosen_step": best["step"],
             "chosen_on": "randomised val split (val_score: learning rate and step), never a test split",
             "train_wall_s": round(sum(e.get("train_wall_s", 0.0) for _, e in cands), 1),
@@ -437,6 +458,8 @@ def ood_report(rand: Path, old: Path, work: Path, models: Path, threads: int, re
 
     res["before_sha256"] = _sha256(models_["before"])
     res["after_sha256"] = _sha256(models_["after"])
+    if not log.get("init_is_shipped", True):
+        res["init_sha256"] = _sha256(Path(log["init_from"]))
     res["wall_s"] = {"generation": round(sum(v.get("wall_s", v.get("wall_s_last_call", 0.0)) for v in gen.values()), 1),
                      "training_all_runs": round(sum(e.get("train_wall_s", 0.0) for lg in runs.values()
                                                     for e in lg["entries"]), 1),
@@ -466,7 +489,8 @@ def update_card(models: Path, snap_card: Path, res: dict, shipped_card: Path) ->
         card["training"]["data_dirs"] = [Path(d).name for d in card["training"]["data_dirs"]]
         card["training"]["fine_tuned_from"] = {"file_sha256": old["file"]["sha256"], "training": old["training"],
                                                "validation": old.get("validation"), "metrics_h7_h8": old.get("metrics")}
-        card["training"]["schedule"] = (f"fine-tuned {res['training']['chosen_step']} steps from the shipped model on the "
+        start = "the shipped model" if "init_sha256" not in res else f"{res['training']['init_from']}"
+        card["training"]["schedule"] = (f"fine-tuned {res['training']['chosen_step']} steps from {start} on the "
                                         f"randomised train split, lr {res['training']['lr']}, ln sigma centred at "
                                         f"{res['training']['p_mean']}, crop {res['training']['crop']}, "
                                         f"{res['training']['threads']} torch thread(s); step chosen on the val split")
@@ -545,6 +569,7 @@ def main(argv=None) -> int:
                                 tuple(a.old_streets), a.train_budget_min * 60 if a.train_budget_min else None)
         elif step == "inverse-randomised":
             ft = dict(rand=a.rand_data, old=a.old_data, work=a.work, init_from=a.init_from or a.models / "inverse_gbuffer.onnx",
+                      shipped_model=a.models / "inverse_gbuffer.onnx",
                       p_mean=a.p_mean if a.p_mean is not None else 2.0, batch=a.batch,
                       crop=96 if a.crop == 64 else a.crop, threads=a.threads,
                       mix_old=tuple(name for name, *_ in scene_plan(a.seeds))[:a.mix_old], view=a.view)

@@ -5,7 +5,8 @@ G-buffers ``{N_g, D_g, A_g, R_g, M_g}`` that the inverse diffusion model generat
 frames, split into overlapping clips and blended by sliding-window averaging. Here the model is the
 shipped ``models/inverse_gbuffer.onnx`` (contract ``inverse_gbuffer``), sampled with
 :data:`core.gen.edm.GENERATE_SAMPLER` through :class:`core.gen.edm.WindowedDenoiser` (windows of
-the model's ``brdf.frames``, half overlapping, ramp-blended).
+the model's ``brdf.frames``, half overlapping, ramp-blended), as the mean of an ensemble of noise
+draws and mirrored frames (:mod:`core.gen.gbuffer_ensemble`).
 
 Frames are grouped per camera and ordered by time, so a window holds consecutive frames of one
 camera. Priors are computed once per scene and cached (:func:`load_or_compute_priors`): the cache
@@ -36,8 +37,9 @@ import numpy as np
 import torch
 
 from core.errors import ConfigError, FormatError, ModelLoadError, NumericalError
-from core.gen.edm import GENERATE_SAMPLER, OnnxDenoiser, SamplerSettings, generate, sdedit
+from core.gen.edm import GENERATE_SAMPLER, OnnxDenoiser, SamplerSettings, sdedit
 from core.gen.encoding import camera_to_world_dirs, decode_gbuffer, ldr_to_data, view_conditioning
+from core.gen.gbuffer_ensemble import EnsembleSettings, generate_gbuffer
 from core.gen.runtime import load_model
 from core.io.atomic import atomic_output
 
@@ -110,7 +112,7 @@ def decode_to_priors(x: np.ndarray, cam_to_world: np.ndarray) -> dict[str, np.nd
 
 def run_inverse_model(bundle, split: str = "train", *, model: str | Path = DEFAULT_INVERSE_MODEL,
                       threads: int = 2, anchors: dict[str, np.ndarray] | None = None, sigma_tau: float | None = None,
-                      steps: int = 1,
+                      steps: int = 1, ensemble: EnsembleSettings | None = None,
                       on_clip: Callable[[int, int], None] | None = None) -> GBufferPriors:
     """G-buffer priors of every frame of ``split`` from the inverse model.
 
@@ -122,6 +124,8 @@ def run_inverse_model(bundle, split: str = "train", *, model: str | Path = DEFAU
             refinement stage) instead of sampled from noise.
         sigma_tau: SDEdit noise level of the anchors (needed with ``anchors``).
         steps: Euler steps of the SDEdit from ``sigma_tau``.
+        ensemble: members averaged when sampling from noise (default
+            :class:`core.gen.gbuffer_ensemble.EnsembleSettings`); the SDEdit of anchors is one call.
         on_clip: ``(done, total)`` after each camera clip.
 
     Raises:
@@ -147,7 +151,7 @@ def run_inverse_model(bundle, split: str = "train", *, model: str | Path = DEFAU
                 view_conditioning(f.cam_to_world, cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height)
                 for f in clip]))
         if anchors is None:
-            y = generate(den, shape, cond, GENERATE_SAMPLER)
+            y = generate_gbuffer(den, shape, cond, GENERATE_SAMPLER, ensemble)
         else:
             missing = [f.id for f in clip if f.id not in anchors]
             if missing:
@@ -165,16 +169,19 @@ def run_inverse_model(bundle, split: str = "train", *, model: str | Path = DEFAU
 
 
 def load_or_compute_priors(bundle, cache: str | Path, *, model: str | Path = DEFAULT_INVERSE_MODEL,
-                           threads: int = 2, split: str = "train") -> tuple[GBufferPriors, dict]:
+                           threads: int = 2, split: str = "train",
+                           ensemble: EnsembleSettings | None = None) -> tuple[GBufferPriors, dict]:
     """The bundle's inverse-model priors, from ``cache`` when it matches (same bundle name, frame
-    ids and model file), else computed and written there. Returns (priors, info) where info says
-    ``cached`` and ``seconds``."""
+    ids, model file and ensemble), else computed and written there. Returns (priors, info) where
+    info says ``cached`` and ``seconds``."""
     model = Path(model)
+    ensemble = ensemble or EnsembleSettings()
     if not model.is_file():
         raise ModelLoadError(f"{model}: inverse G-buffer model not found (the volume stage's priors need it; "
                              f"set lambda_normal = lambda_albedo = lambda_roughness = lambda_metallic = 0 "
                              f"and lambda_prior_depth = 0 to run without priors)")
-    key = {"bundle": bundle.name, "frames": sorted(f.id for f in bundle.frames(split)), **_model_key(model)}
+    key = {"bundle": bundle.name, "frames": sorted(f.id for f in bundle.frames(split)), **_model_key(model),
+           "ensemble": {"seeds": ensemble.seeds, "mirror": ensemble.mirror}}
     cache = Path(cache)
     if cache.is_file():
         try:
@@ -184,7 +191,7 @@ def load_or_compute_priors(bundle, cache: str | Path, *, model: str | Path = DEF
         if pri is not None and all(meta.get(k) == v for k, v in key.items()):
             return pri, {"cached": True, "seconds": 0.0}
     t0 = time.perf_counter()
-    pri = run_inverse_model(bundle, split, model=model, threads=threads)
+    pri = run_inverse_model(bundle, split, model=model, threads=threads, ensemble=ensemble)
     pri.save(cache, key)
     return pri, {"cached": False, "seconds": round(time.perf_counter() - t0, 2)}
 

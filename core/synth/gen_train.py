@@ -42,7 +42,8 @@ from tqdm import tqdm
 
 from core.errors import ConfigError, ModelLoadError, NumericalError
 from core.gen import contract as C
-from core.gen.edm import GENERATE_SAMPLER, OnnxDenoiser, SamplerSettings, flicker, generate, sdedit
+from core.gen.edm import GENERATE_SAMPLER, OnnxDenoiser, SamplerSettings, flicker, sdedit
+from core.gen.gbuffer_ensemble import EnsembleSettings, generate_gbuffer
 from core.gen.nets import UNetSettings, build_model, count_parameters, export_onnx
 from core.gen.runtime import load_model
 from core.io.atomic import atomic_output
@@ -375,13 +376,16 @@ def train_model(kind: str, data_dirs, out_dir: str | Path, steps: int, *, settin
 
 
 def evaluate_model(kind: str, onnx_path: str | Path, bundle_dirs, data: DataSettings | None = None, *,
-                   threads: int = 2, sampler=None, max_frames: int | None = None) -> dict:
+                   threads: int = 2, sampler=None, max_frames: int | None = None,
+                   ensemble: EnsembleSettings | None = None) -> dict:
     """Held-out metrics of an exported model on whole frames of ``bundle_dirs``.
 
     forward_denoiser: SDEdit of the input clip; ``psnr_input``, ``psnr_model`` (LDR, against the
     tone-mapped ground truth), ``flicker_input``, ``flicker_model``.
     inverse_gbuffer: sampling from noise conditioned on the frames; ``albedo_si_psnr``,
-    ``roughness_rmse``, ``metallic_rmse``, ``normal_mae_deg`` over non-sky pixels (paper metrics).
+    ``roughness_rmse``, ``metallic_rmse``, ``normal_mae_deg`` over non-sky pixels (paper metrics),
+    of the ensemble mean (``ensemble``, default the product's
+    :class:`core.gen.gbuffer_ensemble.EnsembleSettings`; ``SINGLE`` for one call).
     """
     data = data or DataSettings()
     sess = load_model(onnx_path, kind=kind, threads=threads)
@@ -410,7 +414,7 @@ def evaluate_model(kind: str, onnx_path: str | Path, bundle_dirs, data: DataSett
                 cond = {"rgb": rgb}
                 if sess.info.takes("view"):
                     cond["view"] = torch.from_numpy(np.stack([f["view"] for f in clip]))
-                y = generate(den, tuple(g.shape), cond, sampler)
+                y = generate_gbuffer(den, tuple(g.shape), cond, sampler, ensemble)
                 mask = torch.from_numpy(np.stack([f["sky"][0] for f in clip])) < 0.5
                 sl = C.GBUFFER_SLICES
                 hw = lambda a, k: a[:, sl[k]].permute(0, 2, 3, 1)  # noqa: E731

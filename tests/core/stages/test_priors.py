@@ -10,6 +10,7 @@ import torch
 from core.bundle import open_bundle
 from core.gen.edm import GENERATE_SAMPLER, OnnxDenoiser, generate
 from core.gen.encoding import ldr_to_data, view_conditioning
+from core.gen.gbuffer_ensemble import generate_gbuffer
 from core.gen.nets import UNetSettings, build_model, export_onnx
 from core.gen.runtime import load_model
 from core.stages.priors import decode_to_priors, run_inverse_model
@@ -41,7 +42,7 @@ def test_priors_feed_the_camera_to_a_model_that_takes_it(tiny_scene, tmp_path, v
         cond["view"] = torch.from_numpy(np.stack([view_conditioning(f.cam_to_world, cam.fx, cam.fy, cam.cx, cam.cy,
                                                                     cam.width, cam.height) for f in f0]))
     den = OnnxDenoiser(load_model(path, threads=1))
-    y = generate(den, (len(f0), 9, rgb.shape[2], rgb.shape[3]), cond, GENERATE_SAMPLER).numpy()
+    y = generate_gbuffer(den, (len(f0), 9, rgb.shape[2], rgb.shape[3]), cond, GENERATE_SAMPLER).numpy()
     want = decode_to_priors(y[0], np.asarray(f0[0].cam_to_world, np.float64))
     got = pri.layers[f0[0].id]
     for k in ("albedo", "roughness", "metallic", "normal"):
