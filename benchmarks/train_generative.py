@@ -32,10 +32,14 @@ Randomised data and the out-of-distribution protocol (issue #18; ``core.synth.sp
    ``--mix-old N`` adds the old generator's first N training streets (``mix-old`` generates them
    under ``--old-data``), so that the model keeps the streets the default scene comes from;
    ``--view`` conditions the model on the capture's camera (contract 1.1's optional input).
-7. ``ood``: the shipped model and the best-on-val snapshot on every split (val, test_id, each
+7. ``ood``: the shipped model and the best-on-val snapshot (among those within the replacement
+   rule's tolerances on the old validation streets v9/v10) on every split (val, test_id, each
    test_ood_<axis>) and the old streets; replaces ``models/inverse_gbuffer.onnx`` only when the
    snapshot is better on val and not materially worse on the old streets (``replace_decision``);
    writes the ``ood`` key of ``benchmarks/results/generative.json`` (other keys kept).
+
+Every inverse-model figure is of the product's ensemble mean (``core.gen.gbuffer_ensemble``: two
+noise draws and the mirrored frames).
 
 Usage::
 
@@ -53,6 +57,14 @@ Usage::
     python benchmarks/train_generative.py mix-old --mix-old 6 --workers 1
     python benchmarks/train_generative.py inverse-randomised --lr 3e-4 --steps 4000 --mix-old 6 --threads 1
     python benchmarks/train_generative.py inverse-randomised --lr 3e-4 --steps 10000 --mix-old 6 --view --threads 2
+    python benchmarks/train_generative.py ood --threads 2
+    # the run of 2026-11-28, second session (80 randomised streets + s100-s111, the s-streets drawn
+    # 4x as often, ln sigma centred at 3.5; about 60 min of generation on two cores + 35 min of
+    # training): the chosen run started from the shipped model
+    python benchmarks/train_generative.py randomised --rand-train 40 --old-streets v9 v10 h7 h8
+    python benchmarks/make_randomised.py --split train --start 40 --count 40 --out /root/brdf_data/randomised --pinhole --set num_frames=4 --set 'relight_envmaps=[]' --workers 1   # beside it, on the other core
+    python benchmarks/train_generative.py mix-old --mix-old 12 --workers 1
+    python benchmarks/train_generative.py inverse-randomised --lr 3e-4 --steps 12000 --mix-old 12 --old-repeat 4 --p-mean 3.5 --view --threads 2
     python benchmarks/train_generative.py ood --threads 2
 
 The held-out evaluation for ``benchmarks/results/generative.json`` is
@@ -274,13 +286,16 @@ def eval_streets(onnx: Path, dirs, threads: int) -> dict:
 
 def finetune_randomised(rand: Path, old: Path, work: Path, init_from: Path, steps: int, eval_every: int, lr: float,
                         p_mean: float, batch: int, crop: int, threads: int, mix_old: tuple[str, ...] = (),
-                        view: bool = False, shipped_model: Path | None = None) -> dict:
+                        view: bool = False, shipped_model: Path | None = None, old_repeat: int = 1) -> dict:
     """Fine-tune the inverse model on the randomised train split (plus the old generator's
     training streets ``mix_old`` under ``old``, so that the model keeps what it knew of the
     streets the pipeline's default scene comes from); every ``eval_every`` steps export a snapshot
     and score it on the validation streets only (randomised val, old v9/v10). ``view``: the network
     also takes the capture's camera (contract 1.1's optional input; its new stem weights start at
     zero, so step 0 is the init model).
+
+    ``old_repeat``: each clip of the ``mix_old`` streets is drawn that many times as often as a
+    randomised one (batches pick clips uniformly).
 
     ``shipped_model`` (default ``init_from``) is the product's model, the "before" of the ``ood``
     step; it is copied once to ``<work>/inverse_randomised_shipped.onnx``. A fine-tune that starts
@@ -289,9 +304,12 @@ def finetune_randomised(rand: Path, old: Path, work: Path, init_from: Path, step
     from core.synth.gen_train import TrainSettings, train_model
 
     shipped_model = Path(shipped_model or init_from)
-    mix_tag = f"_mix{len(mix_old)}" if mix_old else ""
+    if old_repeat < 1:
+        raise SystemExit(f"--old-repeat: need >= 1, got {old_repeat}")
+    mix_tag = (f"_mix{len(mix_old)}" + (f"x{old_repeat}" if old_repeat > 1 else "")) if mix_old else ""
     init_tag = "" if Path(init_from).resolve() == shipped_model.resolve() else f"_from_{Path(init_from).stem}"
-    out = work / f"inverse_randomised_lr{lr:g}{mix_tag}{'_view' if view else ''}{init_tag}"  # one run per variant
+    p_tag = "" if p_mean == 2.0 else f"_p{p_mean:g}"  # 2.0: the first runs' value, untagged
+    out = work / f"inverse_randomised_lr{lr:g}{p_tag}{mix_tag}{'_view' if view else ''}{init_tag}"  # one run per variant
     snaps = out / "snapshots"
     snaps.mkdir(parents=True, exist_ok=True)
     shipped = work / "inverse_randomised_shipped.onnx"  # the product's model before any fine-tune ("before")
@@ -319,7 +337,7 @@ def finetune_randomised(rand: Path, old: Path, work: Path, init_from: Path, step
     log = json.loads(log_p.read_text()) if log_p.is_file() else {"entries": []}
     log.update({"init_from": str(init), "init_is_shipped": not init_tag, "train": [d.name for d in train_dirs], "val": [d.name for d in val],
                 "old_val": [d.name for d in old_val], "lr": lr, "p_mean": p_mean, "batch": batch, "crop": crop,
-                "threads": threads, "mix_old": list(mix_old), "view": view, "score": "val_score (benchmarks/train_generative.py)"})
+                "threads": threads, "mix_old": list(mix_old), "old_repeat": old_repeat, "view": view, "score": "val_score (benchmarks/train_generative.py)"})
     done = {e["step"] for e in log["entries"]}
 
     def evaluate(step, onnx, extra):
@@ -343,7 +361,9 @@ def finetune_randomised(rand: Path, old: Path, work: Path, init_from: Path, step
             continue
         if clips is None:
             t0 = time.perf_counter()
-            clips = [c for d in train_dirs for c in load_clips(d, s.data, ("inverse",))]
+            old_set = {old / n for n in mix_old}
+            clips = [c for d in train_dirs for c in load_clips(d, s.data, ("inverse",))
+                     for _ in range(old_repeat if d in old_set else 1)]
             print(f"loaded {len(clips)} clips of {len(train_dirs)} streets in {time.perf_counter() - t0:.0f} s", flush=True)
         res = train_model("inverse_gbuffer", train_dirs, out, n, settings=s, clips=clips, export=True)
         shutil.copy2(res.onnx_path, snap)
@@ -383,24 +403,32 @@ def ood_report(rand: Path, old: Path, work: Path, models: Path, threads: int, re
     runs = {p.parent.name: json.loads(p.read_text()) for p in sorted(work.glob("inverse_randomised_lr*/log.json"))}
     if not runs:
         raise SystemExit(f"no fine-tune runs under {work} (run the inverse-randomised step first)")
+    shipped = work / "inverse_randomised_shipped.onnx"
+    # the shipped model on the validation streets: step 0 of a run that started from it, else scored here
+    before_entry = next((e for lg in runs.values() if lg.get("init_is_shipped", True)
+                         for e in lg["entries"] if e["step"] == 0), None)
+    if before_entry is None:
+        v = eval_streets(shipped, split_dirs(rand, "val"), threads)
+        ov = [old / n for n in OLD_VAL if (old / n / "bundle.json").is_file()]
+        before_entry = {"val": v, "score_val": val_score(v["mean"]),
+                        "old_val": eval_streets(shipped, ov, threads) if ov else None}
     cands = [(name, e) for name, lg in runs.items() for e in lg["entries"] if e["step"] > 0]
-    run, best = min(cands, key=lambda c: c[1]["score_val"])
+
+    def keeps_old_val(e) -> bool:  # v9/v10 are validation streets: the choice may use them
+        if not (e.get("old_val") and before_entry.get("old_val")):
+            return True
+        return not replace_decision({"val": {"score": 0.0}, "old_val": before_entry["old_val"]},
+                                    {"val": {"score": 0.0}, "old_val": e["old_val"]})["materially_worse_on_old"]
+
+    kept = [c for c in cands if keeps_old_val(c[1])]
+    run, best = min(kept or cands, key=lambda c: c[1]["score_val"])
     log, out = runs[run], work / run
-    models_ = {"before": work / "inverse_randomised_shipped.onnx",
-               "after": out / "snapshots" / f"inverse_gbuffer_{best['step']:06d}.onnx"}
+    models_ = {"before": shipped, "after": out / "snapshots" / f"inverse_gbuffer_{best['step']:06d}.onnx"}
     splits = ["test_id"] + [f"test_ood_{a}" for a in HELD_OUT]
     figs = {}
     for tag, onnx in models_.items():
         f = {}
-        if tag == "before":  # step 0 of a run that started from the shipped model, else scored here
-            entry = next((e for lg in runs.values() if lg.get("init_is_shipped", True)
-                          for e in lg["entries"] if e["step"] == 0), None)
-        else:
-            entry = next(e for e in log["entries"] if e["step"] == best["step"])
-        if entry is None:
-            v = eval_streets(onnx, split_dirs(rand, "val"), threads)
-            ov = [old / n for n in OLD_VAL if (old / n / "bundle.json").is_file()]
-            entry = {"val": v, "score_val": val_score(v["mean"]), "old_val": eval_streets(onnx, ov, threads) if ov else None}
+        entry = before_entry if tag == "before" else next(e for e in log["entries"] if e["step"] == best["step"])
         f["val"] = {**entry["val"], "score": entry["score_val"]}
         if entry.get("old_val"):
             f["old_val"] = entry["old_val"]
@@ -440,11 +468,14 @@ def ood_report(rand: Path, old: Path, work: Path, models: Path, threads: int, re
                                 "(the first protocol's streets, regenerated here)",
                  "generation": gen},
         "training": {k: log[k] for k in ("lr", "p_mean", "batch", "crop", "threads")} | {
-            "mix_old": log.get("mix_old", []), "view": log.get("view", False),
+            "mix_old": log.get("mix_old", []), "old_repeat": log.get("old_repeat", 1), "view": log.get("view", False),
             "init_from": ("the shipped models/inverse_gbuffer.onnx (sha256 in before_sha256)"
                           if log.get("init_is_shipped", True) else f"{log['init_from']} (a candidate; sha256 in init_sha256)"),
             "chosen_run": run, "chosen_step": best["step"],
-            "chosen_on": "randomised val split (val_score: learning rate and step), never a test split",
+            "chosen_on": ("randomised val split (val_score: run and step) among the snapshots within the replacement "
+                          "rule's tolerances on the old validation streets v9/v10 (all snapshots when none is), "
+                          "never a test split"),
+            "snapshots_within_old_val_tolerance": len(kept), "snapshots": len(cands),
             "train_wall_s": round(sum(e.get("train_wall_s", 0.0) for _, e in cands), 1),
             "val_curves": {name: [{"step": e["step"], "score_val": round(e["score_val"], 4),
                                    "train_wall_s": e.get("train_wall_s"),
@@ -553,6 +584,8 @@ def main(argv=None) -> int:
     ap.add_argument("--view", action="store_true",
                     help="inverse-randomised: condition the model on the capture's camera (per-pixel ray and "
                          "world up, camera frame; the inverse contract's optional input)")
+    ap.add_argument("--old-repeat", type=int, default=1,
+                    help="inverse-randomised: draw each --mix-old street's clips this many times as often")
     ap.add_argument("--mix-old", type=int, default=0,
                     help="inverse-randomised: also train on the old generator's first N training streets "
                          "(s100, s101, ... under --old-data; the mix-old step generates them)")
@@ -572,7 +605,8 @@ def main(argv=None) -> int:
                       shipped_model=a.models / "inverse_gbuffer.onnx",
                       p_mean=a.p_mean if a.p_mean is not None else 2.0, batch=a.batch,
                       crop=96 if a.crop == 64 else a.crop, threads=a.threads,
-                      mix_old=tuple(name for name, *_ in scene_plan(a.seeds))[:a.mix_old], view=a.view)
+                      mix_old=tuple(name for name, *_ in scene_plan(a.seeds))[:a.mix_old], view=a.view,
+                      old_repeat=a.old_repeat)
             lr = a.lr or 1e-4
             if a.lr_pilot:  # each learning rate for --pilot-steps; the best on val continues to --steps
                 logs = {r: finetune_randomised(**ft, steps=a.pilot_steps, eval_every=a.pilot_steps // 2, lr=r)
