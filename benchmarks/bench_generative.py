@@ -96,12 +96,15 @@ def onnx_parity(models: Path, threads: int, runs: int = 3) -> dict:
             continue
         net = json.loads((models / f"{kind}.card.json").read_text())["network"]
         u = dict(net["unet"], channel_mult=tuple(net["unet"]["channel_mult"]))
-        m = build_model(kind, UNetSettings(**u), net["sigma_data"], net["frames"]).eval()
+        view = bool(net.get("view", False))  # the inverse model's optional camera input (contract 1.1)
+        m = build_model(kind, UNetSettings(**u), net["sigma_data"], net["frames"], view=view).eval()
         load_onnx_weights(m, path)
         sess = load_model(path, kind=kind, threads=threads)
         worst = 0.0
         for seed in range(runs):
             x = example_inputs(kind, 1, 1, 64, 96, seed=seed)
+            if not view:
+                x.pop("view", None)
             with torch.no_grad():
                 ref = m(**x).numpy()
             got = next(iter(sess.run(**{k: v.numpy() for k, v in x.items()}).values()))
@@ -264,12 +267,29 @@ def main(argv=None) -> int:
     ap.add_argument("--lighting-scenes", nargs="*", type=Path, default=None,
                     help="held-out scenes of the lighting prior (default: --scenes); the default scene is always added")
     ap.add_argument("--skip-lighting", action="store_true")
+    ap.add_argument("--inverse-only", action="store_true",
+                    help="measure only the inverse model (ONNX parity, and its figures on --scenes) and replace "
+                         "the 'inverse' and 'onnx_parity_max_abs' entries of --out, keeping the rest of the file")
     ap.add_argument("--lighting-only", action="store_true",
                     help="measure only the lighting prior and replace the 'lighting' entry of --out (default "
                          "benchmarks/results/generative.json), keeping the rest of the file")
     a = ap.parse_args(argv)
     light_scenes = [REPO / "data" / "scenes" / "default"] + list(a.scenes if a.lighting_scenes is None
                                                                   else a.lighting_scenes)
+    if a.inverse_only:
+        out = a.out or REPO / "benchmarks" / "results" / "generative.json"
+        result = json.loads(out.read_text()) if out.is_file() else {}
+        parity = onnx_parity(a.models, a.threads)
+        result["onnx_parity_max_abs"] = {**(result.get("onnx_parity_max_abs") or {}),
+                                         "inverse_gbuffer": parity.get("inverse_gbuffer")}
+        if a.scenes:
+            result["inverse"] = quality(list(a.scenes), a.models, a.threads, a.degrade)["inverse"]
+            result["inverse"]["scenes"] = [p.name for p in a.scenes]
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps(result, indent=2))
+        print(json.dumps({"onnx_parity_max_abs": result["onnx_parity_max_abs"], "inverse": result.get("inverse"),
+                          "out": str(out)}, indent=1))
+        return 0
     if a.lighting_only:
         scenes = light_scenes
         out = a.out or REPO / "benchmarks" / "results" / "generative.json"

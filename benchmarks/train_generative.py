@@ -368,7 +368,8 @@ def finetune_randomised(rand: Path, old: Path, work: Path, init_from: Path, step
         res = train_model("inverse_gbuffer", train_dirs, out, n, settings=s, clips=clips, export=True)
         shutil.copy2(res.onnx_path, snap)
         shutil.copy2(res.card_path, snap.with_name(snap.stem + ".card.json"))
-        evaluate(n, snap, {"train_wall_s": round(res.wall_s, 1), "loss_mean200": float(np.mean(res.losses[-200:]))})
+        evaluate(n, snap, {"train_wall_s": round(res.wall_s, 1), "loss_mean200": float(np.mean(res.losses[-200:])),
+                           "threads": threads})
     return log
 
 
@@ -471,7 +472,7 @@ def ood_report(rand: Path, old: Path, work: Path, models: Path, threads: int, re
             "mix_old": log.get("mix_old", []), "old_repeat": log.get("old_repeat", 1), "view": log.get("view", False),
             "init_from": ("the shipped models/inverse_gbuffer.onnx (sha256 in before_sha256)"
                           if log.get("init_is_shipped", True) else f"{log['init_from']} (a candidate; sha256 in init_sha256)"),
-            "chosen_run": run, "chosen_step": best["step"],
+            "chosen_run": run, "chosen_step": best["step"], "chosen_threads": best.get("threads", log["threads"]),
             "chosen_on": ("randomised val split (val_score: run and step) among the snapshots within the replacement "
                           "rule's tolerances on the old validation streets v9/v10 (all snapshots when none is), "
                           "never a test split"),
@@ -520,12 +521,15 @@ def update_card(models: Path, snap_card: Path, res: dict, shipped_card: Path) ->
         card["training"]["data_dirs"] = [Path(d).name for d in card["training"]["data_dirs"]]
         card["training"]["fine_tuned_from"] = {"file_sha256": old["file"]["sha256"], "training": old["training"],
                                                "validation": old.get("validation"), "metrics_h7_h8": old.get("metrics")}
-        start = "the shipped model" if "init_sha256" not in res else f"{res['training']['init_from']}"
-        card["training"]["schedule"] = (f"fine-tuned {res['training']['chosen_step']} steps from {start} on the "
-                                        f"randomised train split, lr {res['training']['lr']}, ln sigma centred at "
-                                        f"{res['training']['p_mean']}, crop {res['training']['crop']}, "
-                                        f"{res['training']['threads']} torch thread(s); step chosen on the val split")
-        card["sampler"] = old.get("sampler")
+        t = res["training"]
+        start = "the shipped model" if "init_sha256" not in res else f"{t['init_from']}"
+        mix = (f" plus the first generator's {', '.join(t['mix_old'])} (each drawn {t.get('old_repeat', 1)}x as often)"
+               if t.get("mix_old") else "")
+        card["training"]["schedule"] = (f"fine-tuned {t['chosen_step']} steps from {start} on the randomised train "
+                                        f"split{mix}, lr {t['lr']}, ln sigma centred at {t['p_mean']}, crop {t['crop']}, "
+                                        f"{t.get('chosen_threads', t['threads'])} torch thread(s)"
+                                        f"{', camera input' if t.get('view') else ''}; step chosen on the val split")
+        card["sampler"] = {**(old.get("sampler") or {}), "ensemble": res["sampler"]}
         card["metrics"] = res["after"]["old_held_out"]["mean"] if res["after"].get("old_held_out") else {}
         card["metrics_note"] = "metrics: the old held-out streets h7, h8 (in-distribution of the first generator)"
     else:
