@@ -47,6 +47,7 @@ import torch
 from core.bundle import open_bundle
 from core.errors import ConfigError, ShapeError
 from core.gen import encoding as E
+from core.gen.gbuffer_ensemble import NORMAL_X, VIEW_X
 from core.io.exr import read_exr
 from core.tonemap import hdr_to_ldr
 
@@ -248,13 +249,12 @@ class ClipDataset:
         if self.kind == "inverse_gbuffer":
             g = img("gbuffer")
             if flip:
-                g[:, 5] *= -1  # normal x (camera frame) of the G-buffer data space
+                g[:, NORMAL_X] *= -1  # normal x (camera frame) of the G-buffer data space
             out = {"x0": g, "rgb": img("rgb"), "sky": img("sky")}
             if self.view:
                 v = img("view")
                 if flip:  # a mirrored image is seen by a mirrored camera: x of the ray and of up
-                    v[:, 0] *= -1
-                    v[:, 3] *= -1
+                    v[:, list(VIEW_X)] *= -1
                 out["view"] = v
             return out
         d = {"x0": img("target_ldr"), "x_in": img("input_ldr"), "sky": img("sky"),
