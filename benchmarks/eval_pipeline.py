@@ -189,6 +189,10 @@ def main() -> int:
     ap.add_argument("--default-scene", action="store_true", help="also the bundled default scene at --default-profile")
     ap.add_argument("--default-profile", default="quick")
     ap.add_argument("--out", default=str(REPO / "benchmarks" / "results" / "eval.json"))
+    ap.add_argument("--merge-from", nargs="+", default=[], metavar="STREET=JSON",
+                    help="only merge: copy STREET's per-street rows (every row and profile) from JSON, the --out "
+                         "of a run of this script beside another (e.g. streets run side by side), into --out and "
+                         "recompute the means; no street is run")
     a = ap.parse_args()
     data = Path(a.data)
     roles = set(a.roles.split(","))
@@ -203,7 +207,16 @@ def main() -> int:
                                               "streets": {n: {"role": r, "seed": s, "envmap": m, "rotation_deg": d}
                                                           for n, (r, s, m, d) in STREETS.items()}}})
     per = result.setdefault("per_street", {})
-    names = [n for n in a.streets.split(",") if n] or list(STREETS)
+    for spec in a.merge_from:
+        street, _, src = spec.partition("=")
+        if street not in STREETS or not src:
+            ap.error(f"--merge-from: expected STREET=JSON with STREET in {sorted(STREETS)}, got {spec!r}")
+        other = json.loads(Path(src).read_text()).get("per_street", {})
+        for row, by_profile in other.items():
+            for prof, streets in by_profile.items():
+                if street in streets:
+                    per.setdefault(row, {}).setdefault(prof, {})[street] = streets[street]
+    names = [] if a.merge_from else ([n for n in a.streets.split(",") if n] or list(STREETS))
     unknown = [n for n in names if n not in STREETS]
     if unknown:
         ap.error(f"--streets: unknown {unknown} (streets: {sorted(STREETS)})")
