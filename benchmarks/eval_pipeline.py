@@ -211,6 +211,8 @@ def main() -> int:
         street, _, src = spec.partition("=")
         if street not in STREETS or not src:
             ap.error(f"--merge-from: expected STREET=JSON with STREET in {sorted(STREETS)}, got {spec!r}")
+        if not Path(src).is_file():
+            ap.error(f"--merge-from: {src}: no such results file (for street {street})")
         other = json.loads(Path(src).read_text()).get("per_street", {})
         for row, by_profile in other.items():
             for prof, streets in by_profile.items():
