@@ -24,6 +24,7 @@ import redis
 from fastapi import FastAPI, HTTPException, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
+from sqlalchemy.exc import OperationalError
 
 import api_schemas as S
 from services.auth import Authenticator, create_key
@@ -105,6 +106,17 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         return JSONResponse({"detail": exc.detail if isinstance(exc.detail, str) else str(exc.detail),
                              "errors": getattr(exc, "errors", [])}, status_code=exc.status_code,
                             headers=exc.headers)
+
+    @app.exception_handler(OperationalError)
+    async def database_unavailable(request: Request, exc: OperationalError):
+        # SQLite answers "database is locked" when a writer (e.g. a worker frozen inside a write
+        # transaction) holds the lock past the busy timeout; PostgreSQL raises this class when the
+        # server is down. Either way nothing was changed: say so and ask for a retry, not a 500.
+        reason = str(getattr(exc, "orig", None) or exc).splitlines()[0][:200]
+        log.warning("%s %s: database unavailable (%s)", request.method, request.url.path, reason)
+        return JSONResponse({"detail": f"database busy or unavailable ({reason}); nothing was changed, "
+                                       f"retry in a few seconds", "errors": []},
+                            status_code=503, headers={"Retry-After": "5"})
 
     @app.exception_handler(RequestValidationError)
     async def validation_error(request: Request, exc: RequestValidationError):

@@ -229,3 +229,46 @@ def test_a_job_taken_but_not_started_by_a_dead_worker_is_retried(app, settings, 
     monkeypatch.setattr(Q, "_rq_status", lambda conn, rq_id: ("failed", "DeserializationError: bad payload"))
     assert Q.reconcile(settings, db, app.state.rconn())["rq_failed"] == 1
     assert client.get(f"/jobs/{jid}").json()["state"] == "failed"
+
+
+def test_cancel_against_a_locked_database_is_503_and_changes_nothing(client, app, scene_id, tmp_path, monkeypatch):
+    """A worker frozen inside a SQLite write transaction holds the lock past the busy timeout:
+    the cancel gets the database's own "database is locked" error. The gateway answers 503 with
+    Retry-After and the reason (it was a bare 500), and the job is still queued."""
+    import sqlite3
+
+    import sqlalchemy.exc
+
+    import services.routes.jobs as job_routes
+    from worker.db import Job
+
+    r = client.post(f"/scenes/{scene_id}/reconstruct", json={})
+    assert r.status_code == 202, r.text
+    jid = r.json()["id"]
+
+    # the genuine error: a second connection with no busy timeout against a held write lock
+    path = tmp_path / "locked.db"
+    holder = sqlite3.connect(path, isolation_level=None)
+    holder.execute("CREATE TABLE t (x)")
+    holder.execute("BEGIN EXCLUSIVE")
+    try:
+        sqlite3.connect(path, timeout=0).execute("INSERT INTO t VALUES (1)")
+    except sqlite3.OperationalError as e:
+        locked = sqlalchemy.exc.OperationalError("UPDATE jobs SET state=?", ("canceled",), e)
+    finally:
+        holder.close()
+    assert "database is locked" in str(locked.orig)
+
+    def cancel_while_locked(db, conn, job_id):
+        raise locked
+    monkeypatch.setattr(job_routes, "request_cancel", cancel_while_locked)
+    r = client.delete(f"/jobs/{jid}")
+    assert r.status_code == 503, r.text
+    assert r.headers["Retry-After"] == "5"
+    assert "database is locked" in r.json()["detail"] and "nothing was changed" in r.json()["detail"]
+    with app.state.db.session() as s:
+        assert s.get(Job, jid).state == "queued"
+
+    monkeypatch.undo()
+    r = client.delete(f"/jobs/{jid}")
+    assert r.status_code == 200 and r.json()["state"] == "canceled", r.text
