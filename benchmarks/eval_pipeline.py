@@ -181,7 +181,8 @@ def mean_row(rows: list[dict]) -> dict:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--data", required=True, help="directory of the streets (generated when missing) and runs")
+    ap.add_argument("--data", help="directory of the streets (generated when missing) and runs; not needed "
+                                   "with --merge-from")
     ap.add_argument("--profile", default="benchmark", help="reconstruction profile of the streets")
     ap.add_argument("--roles", default="dev,test", help="which streets: dev, test or both")
     ap.add_argument("--streets", default="", help=f"comma-separated subset of {sorted(STREETS)} (default: all of --roles), run in this order")
@@ -194,7 +195,10 @@ def main() -> int:
                          "of a run of this script beside another (e.g. streets run side by side), into --out and "
                          "recompute the means; no street is run")
     a = ap.parse_args()
-    data = Path(a.data)
+    if not a.data and (not a.merge_from or a.default_scene):
+        ap.error("--data: required unless only merging with --merge-from (the directory of the streets and "
+                 "their runs)")
+    data = Path(a.data) if a.data else None
     roles = set(a.roles.split(","))
     rows = [r for r in a.rows.split(",") if r]
     bad = [r for r in rows if r not in ROWS]
@@ -251,7 +255,10 @@ def main() -> int:
                 by[prof] = {**mean_row(list(sel.values())), "profile": prof, "scene_count": len(sel),
                             "streets": sorted(sel)}
                 pick = next(p for p in ("benchmark", "paper", "quick", "tiny") if p in by)
-                result[key] = {**by[pick], "by_profile": by}
+                new = {**by[pick], "by_profile": by}
+                # what was written by hand beside the figures (``how``, notes) stays
+                kept = {k: v for k, v in result.get(key, {}).items() if k not in new}
+                result[key] = {**kept, **new}
     out_path.parent.mkdir(parents=True, exist_ok=True)
     out_path.write_text(json.dumps(result, indent=1))
     print(json.dumps({k: result.get(k) for k in ("full", "full_dev")}, indent=1))

@@ -24,10 +24,13 @@ def _write(path: Path, streets: dict) -> None:
 def test_merge_takes_each_street_from_its_own_file_and_recomputes_the_means(tmp_path):
     out, a, b = tmp_path / "eval.json", tmp_path / "a.json", tmp_path / "b.json"
     _write(out, {"test1": _row("test", 10.0), "test2": _row("test", 12.0), "dev1": _row("dev", 5.0)})
+    first = json.loads(out.read_text())
+    first["full"] = {"how": "written by hand", "relight_psnr": 11.0}
+    out.write_text(json.dumps(first))
     # a.json holds test1's new row and a stale copy of test2; b.json test2's new row
     _write(a, {"test1": _row("test", 20.0), "test2": _row("test", 12.0)})
     _write(b, {"test2": _row("test", 22.0), "test1": _row("test", 10.0)})
-    r = subprocess.run([sys.executable, "benchmarks/eval_pipeline.py", "--data", str(tmp_path / "none"),
+    r = subprocess.run([sys.executable, "benchmarks/eval_pipeline.py",
                         "--out", str(out), "--merge-from", f"test1={a}", f"test2={b}"],
                        cwd=REPO, capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr
@@ -36,7 +39,8 @@ def test_merge_takes_each_street_from_its_own_file_and_recomputes_the_means(tmp_
     assert streets["test1"]["relight_psnr"] == 20.0 and streets["test2"]["relight_psnr"] == 22.0
     assert streets["dev1"]["relight_psnr"] == 5.0
     assert res["full"]["relight_psnr"] == 21.0 and res["full_dev"]["relight_psnr"] == 5.0
-    assert not (tmp_path / "none").exists()  # nothing was generated or run
+    assert res["full"]["how"] == "written by hand"  # the hand-written fields beside the figures stay
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.json", "b.json", "eval.json"]  # nothing run
 
 
 def test_merge_names_a_bad_spec(tmp_path):
@@ -44,3 +48,10 @@ def test_merge_names_a_bad_spec(tmp_path):
                         str(tmp_path / "e.json"), "--merge-from", "nowhere.json"],
                        cwd=REPO, capture_output=True, text=True, timeout=300)
     assert r.returncode != 0 and "--merge-from" in r.stderr and "STREET=JSON" in r.stderr
+
+
+def test_running_streets_needs_data(tmp_path):
+    r = subprocess.run([sys.executable, "benchmarks/eval_pipeline.py", "--out", str(tmp_path / "e.json"),
+                        "--streets", "test1"], cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert r.returncode != 0 and "--data" in r.stderr
+    assert not (tmp_path / "e.json").exists()
