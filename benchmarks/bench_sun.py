@@ -167,6 +167,23 @@ COMPARE_KEYS = ("sun_error_deg", "rerender_psnr", "relight_psnr", "relight_ssim"
                 "albedo_si_psnr")
 
 
+def wall_hypotheses(run: str | Path) -> dict | None:
+    """The pbr stage's wall-height hypotheses of ``run`` (``core.stages.wall_heights``), each
+    with its residual and its sun's error against the bundle's true map (a diagnostic: reads
+    ground truth), and the chosen one; None when the stage did not run them."""
+    s = json.loads((Path(run) / "pbr" / "summary.json").read_text())
+    w = s.get("wall_heights") or {}
+    if not w.get("enabled"):
+        return None
+    from core.bundle import open_bundle
+
+    true_sun = brightest_direction(np.asarray(open_bundle(RunDir(run).scene_path()).load_envmap(), np.float64))
+    return {"chosen": w["chosen"], "seconds": w.get("seconds"),
+            "hypotheses": {h: {"residual": v["residual"],
+                               "sun_error_deg": round(sun_direction_error_deg(np.array(v["sun_dir"]), true_sun), 1)}
+                           for h, v in w["hypotheses"].items()}}
+
+
 def compare(specs) -> dict:
     """``ROLE:NAME:BEFORE:AFTER`` run pairs -> per scene and per role mean of COMPARE_KEYS."""
     out: dict = {"scenes": {}, "means": {}}
@@ -176,6 +193,9 @@ def compare(specs) -> dict:
         for k, run in (("before", before), ("after", after)):
             ev = json.loads((Path(run) / "evaluation.json").read_text())["summary"]
             row[k] = {key: ev.get(key) for key in COMPARE_KEYS}
+            walls = wall_hypotheses(run)
+            if walls is not None:
+                row[k]["wall_heights"] = walls
         out["scenes"][name] = row
     for role in sorted({r["role"] for r in out["scenes"].values()}):
         rows = [r for r in out["scenes"].values() if r["role"] == role]
@@ -185,6 +205,10 @@ def compare(specs) -> dict:
     for name, r in out["scenes"].items():
         print(f"{name:>10} ({r['role']}): " + ", ".join(f"{k} {r['before'][k]:.2f} -> {r['after'][k]:.2f}"
                                                   for k in COMPARE_KEYS[:4]))
+        w = r["after"].get("wall_heights")
+        if w:
+            print(f"{'':>10} walls: chosen {w['chosen']}; " + ", ".join(
+                f"{h} {v['residual']} ({v['sun_error_deg']} deg)" for h, v in w["hypotheses"].items()))
     return out
 
 

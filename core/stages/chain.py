@@ -13,9 +13,11 @@ generative_refine   volume's scene graph, frames           priors.npz (refined G
 volume2             volume's scene graph + sky,            checkpoint/scene_graph.pt, sky.pt,
                     generative_refine's priors             renders/, summary.json
 pbr                 the latest scene graph, frames         envmap.exr, envmap_prior.exr,
-                                                           preview.png, summary.json
-joint               the latest scene graph + sky, pbr's    checkpoint/scene_graph.pt, sky.pt,
-                    envmap, the latest priors              envmap.exr, summary.json
+                                                           preview.png, summary.json,
+                                                           occluders.pt (unseen walls lifted)
+joint               the latest scene graph + sky (with     checkpoint/scene_graph.pt, sky.pt,
+                    pbr's occluders), pbr's envmap, the    envmap.exr, summary.json
+                    latest priors
 ==================  =====================================  ======================================
 
 The CLI runs :func:`run_pipeline` in-process; the service's workers run each stage as its own RQ
@@ -58,6 +60,9 @@ GRAPH_STAGES = ("volume", "volume2", "joint")
 ENVMAP_STAGES = ("pbr", "joint")
 #: Stages that write G-buffer priors, latest last (``priors/`` holds the inverse model's).
 PRIOR_STAGES = ("generative_refine",)
+#: Stages that may replace the occluders of the graph before them (``occluders.pt``,
+#: :mod:`core.stages.wall_heights`).
+OCCLUDER_STAGES = ("pbr",)
 
 
 @dataclass(frozen=True)
@@ -117,7 +122,8 @@ def _specs() -> dict[str, StageSpec]:
                   ("volume", "generative_refine"), ("checkpoint/scene_graph.pt", "checkpoint/sky.pt", "renders/",
                                                     "summary.json"), VolumeSettings, "core.stages.volume2"),
         StageSpec("pbr", "Sec. 3.3 'Physically-based Inverse Rendering Stage', Eq. 6", ("volume",),
-                  ("envmap.exr", "envmap_prior.exr", "preview.png", "summary.json"), PBRStageConfig,
+                  ("envmap.exr", "envmap_prior.exr", "preview.png", "summary.json",
+                   "occluders.pt (when it lifts a side's unseen walls)"), PBRStageConfig,
                   "core.stages.pbr"),
         StageSpec("joint", "Sec. 3.3 (d) and supplement: L_vol + 0.1 L_pbr", ("volume", "pbr"),
                   ("checkpoint/scene_graph.pt", "checkpoint/sky.pt", "envmap.exr", "summary.json"), JointSettings,
@@ -321,10 +327,12 @@ class RunDir:
         return None
 
     def load_scene(self, before: str | None = None):
-        """(SceneGraph, SkyDome, stage) of the latest reconstructed scene."""
+        """(SceneGraph, SkyDome, stage) of the latest reconstructed scene (its occluders replaced by
+        a later stage's choice, :data:`OCCLUDER_STAGES`, when there is one before ``before``)."""
         import torch
 
         from core.scene_graph import SceneGraph
+        from core.stages.wall_heights import OCCLUDERS_FILE, load_occluders
         from core.train.sky import SkyDome
 
         found = self.latest_graph_dir(before)
@@ -332,6 +340,13 @@ class RunDir:
             raise ConfigError(f"{self.root}: no finished stage with a scene graph (run the volume stage first)")
         d, st = found
         graph = SceneGraph.load(d / "scene_graph.pt")
+        # occluders a later stage chose for this graph (the pbr stage's wall heights)
+        limit = STAGES.index(before) if before is not None else len(STAGES)
+        for ost in reversed(OCCLUDER_STAGES):
+            f = self.stage_dir(ost) / OCCLUDERS_FILE
+            if STAGES.index(st) < STAGES.index(ost) < limit and self.is_done(ost) and f.is_file():
+                graph.occluders = load_occluders(f)
+                break
         f = d / "sky.pt"
         sky = (SkyDome.from_state(torch.load(f, map_location="cpu", weights_only=True)["sky"]) if f.is_file()
                else SkyDome(64, 128))

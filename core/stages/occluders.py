@@ -43,6 +43,10 @@ from core.raster import rasterize_gaussians
 from core.rotations import rotmat_to_quat
 
 
+#: Values of :attr:`OccluderSettings.tall_unseen`.
+TALL_UNSEEN = ("none", "left", "right", "both")
+
+
 @dataclass(frozen=True)
 class OccluderSettings:
     """How facades are completed upward for shadow rays. Lengths in metres (world, z up)."""
@@ -145,6 +149,23 @@ class OccluderSettings:
     (0 = off), full height: a forward camera never sees the walls beside and behind its first
     position, which shade the street from a sun behind it (default scene, capture map: the
     road's largest shadow). The same sky carving applies."""
+    continued_from_foot: bool = True
+    """A continued wall (``extend_m``) starts at the foot of its side's wall line (the
+    ``continued_foot_quantile`` of that side's wall-line column bottoms) when its last seen slice
+    began higher. Before, it started where that slice's Gaussians began: on the development
+    street dev2 (a 7.9 deg sunrise sun from the left) the left wall beside the camera was
+    continued from 4.1 m up, and the sun passed under it onto the road in front of the camera."""
+    continued_foot_quantile: float = 0.1
+    """Quantile of the side's wall-line column bottoms taken as its foot (a low one: most columns
+    reach the ground, some start above a parked car or a tree)."""
+    tall_unseen: str = "none"
+    """Sides of the capture path (``"left"`` / ``"right"`` of its direction from the first to the
+    last view, ``"both"`` or ``"none"``) whose walls of unseen height stand ``max_height_m`` tall:
+    the columns whose top no frame saw are not capped at their neighbours' roof line
+    (``unseen_roof_radius_m``), and the continued walls (``extend_m``) are not capped at the
+    side's median roof line. Those heights are guesses; the pbr stage chooses this per scene by
+    which of the four explains the capture's shading best under its best sun
+    (:mod:`core.stages.wall_heights`); a volume stage builds with ``"none"``."""
 
     def __post_init__(self) -> None:
         for k in ("cell_m", "step_m", "max_height_m", "opacity", "depth_margin_m", "inset_m", "layer_spacing_m",
@@ -160,11 +181,15 @@ class OccluderSettings:
             raise ConfigError(f"opacity: must be in (0, 1), got {self.opacity!r}")
         if not (isinstance(self.layers, int) and not isinstance(self.layers, bool) and 1 <= self.layers <= 8):
             raise ConfigError(f"layers: must be an int in [1, 8], got {self.layers!r}")
-        for k in ("fill_observed", "grow_behind", "continued_sky_roof", "wall_line_sky_only"):
+        if not 0.0 <= self.continued_foot_quantile <= 1.0:
+            raise ConfigError(f"continued_foot_quantile: must be in [0, 1], got {self.continued_foot_quantile!r}")
+        for k in ("fill_observed", "grow_behind", "continued_sky_roof", "wall_line_sky_only", "continued_from_foot"):
             if not isinstance(getattr(self, k), bool):
                 raise ConfigError(f"{k}: expected a bool, got {getattr(self, k)!r}")
         if not (isinstance(self.min_count, int) and self.min_count >= 1):
             raise ConfigError(f"min_count: must be an int >= 1, got {self.min_count!r}")
+        if self.tall_unseen not in TALL_UNSEEN:
+            raise ConfigError(f"tall_unseen: must be one of {TALL_UNSEEN}, got {self.tall_unseen!r}")
 
 
 def facade_columns(background: Gaussians, s: OccluderSettings) -> tuple[np.ndarray, np.ndarray, np.ndarray,
@@ -244,13 +269,18 @@ def _continued_columns(centres, bottoms, normals, roof, sky_roof, views, s: Occl
         if not on.any():
             continue
         roofs = roof[on & np.isfinite(roof) & (sky_roof if s.continued_sky_roof else True)]
-        cap = float(np.median(roofs)) if len(roofs) else s.max_height_m
+        tall = bool(_tall_side(np.array([sd]), s)[0])
+        cap = float(np.median(roofs)) if len(roofs) and not tall else s.max_height_m
         wall = _side_wall_line(offset, on, s)
+        # a building stands on the ground: the continued wall starts at the foot of the side's
+        # wall line, not where its last seen slice's Gaussians began (a slice seen over a parked
+        # car or a tree starts metres up, and a low sun passed under the continued wall)
+        foot = float(np.quantile(bottoms[wall], s.continued_foot_quantile)) if s.continued_from_foot else np.inf
         for end, sign in ((along[wall].min(), -1.0), (along[wall].max(), 1.0)):
             sl = wall & (np.abs(along - end) <= s.cell_m)  # the wall's last seen slice
             for shift in steps:
                 out_c.append(centres[sl] + sign * shift * d)
-                out_z.append(bottoms[sl])
+                out_z.append(np.minimum(bottoms[sl], foot))
                 out_cap.append(np.full(int(sl.sum()), min(cap, s.max_height_m)))
                 out_n.append(normals[sl])
     if not out_c:
@@ -269,6 +299,13 @@ def _path_frame(views) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         return None
     d = d / np.linalg.norm(d)
     return pos[0, :2], d, np.array([-d[1], d[0]])
+
+
+def _tall_side(side: np.ndarray, s: OccluderSettings) -> np.ndarray:
+    """[C] bool: the columns on a side (``side`` [C]: +1 left of the path, -1 right, 0 on it) whose
+    unseen walls stand ``max_height_m`` tall (:attr:`OccluderSettings.tall_unseen`)."""
+    return {"none": np.zeros(len(side), bool), "left": side > 0, "right": side < 0,
+            "both": np.ones(len(side), bool)}[s.tall_unseen]
 
 
 def _side_wall_line(offset: np.ndarray, on: np.ndarray, s: OccluderSettings) -> np.ndarray:
@@ -307,7 +344,7 @@ def _unseen_caps(centres, roof, sky_roof, views, s: OccluderSettings) -> np.ndar
     p0, d, lat = frame
     along, side = centres @ d, np.sign((centres - p0) @ lat)
     sky_seen = sky_roof & np.isfinite(roof)
-    for i in np.nonzero(~np.isfinite(roof))[0]:
+    for i in np.nonzero(~np.isfinite(roof) & ~_tall_side(side, s))[0]:
         near = sky_seen & (side == side[i]) & (np.abs(along - along[i]) <= s.unseen_roof_radius_m)
         if near.any():
             cap[i] = min(float(np.median(roof[near])), cap[i])

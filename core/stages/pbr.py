@@ -55,6 +55,8 @@ from core.pbr.render import PRODUCT_DIFFUSE, PRODUCT_MASKING, PRODUCT_OPAQUE_ABO
 from core.pbr.visibility import GaussianTracer, TraceSettings
 from core.raster import RasterSettings, rasterize_gaussians
 from core.stages.early_stop import stalled
+from core.stages.occluders import OccluderSettings, capture_views
+from core.stages.wall_heights import OCCLUDERS_FILE, capture_frames, choose, hypothesis_occluders, save_occluders
 
 
 @dataclass(frozen=True)
@@ -149,6 +151,17 @@ class PBRStageConfig(StageShading):
     """Surface pixels (random subset of the training frames) of the prior's sun search
     (:attr:`core.lighting.prior.LightingSettings.max_points`). With shadows, 4000 left the
     default scene's answer to the subset: 34 deg off, 11 with 16000."""
+    wall_hypotheses: bool = True
+    """Choose the shadow casters the capture never saw whole by the capture's shading
+    (:mod:`core.stages.wall_heights`): the prior's sun search runs once per hypothesis (each
+    side's unseen walls at their neighbours' roof line or at the occluders' ``max_height_m``;
+    the facades on the wall lines carved by the depth test or by sky pixels only). The
+    hypothesis with the smallest residual gives the prior's sun, and its occluders serve the
+    stage, the joint stage and every later render (``occluders.pt``). Needs ``prior_shadows`` and
+    the volume stage's occluder settings; costs seven more searches."""
+    wall_min_gain: float = 0.0
+    """A wall hypothesis that lifts a side wins only when its residual is lower than the guess's
+    (and a two-side one than a one-side one) by more than this share (:func:`core.stages.wall_heights.choose`)."""
     prior_basin_quantile: float = 0.05
     """The prior's sun search refines only around the low region of its coarse grid
     (:attr:`core.lighting.prior.LightingSettings.basin_quantile`). Without it the default
@@ -231,7 +244,9 @@ class PBRStageConfig(StageShading):
                                ("coarse_lr", self.coarse_lr > 0),
                                ("eval_pixels", self.eval_pixels >= 1), ("threads", self.threads >= 1),
                                ("prior_points", self.prior_points >= 50),
-                               ("prior_basin_quantile", 0 <= self.prior_basin_quantile < 1)) if not ok]
+                               ("prior_basin_quantile", 0 <= self.prior_basin_quantile < 1),
+                               ("wall_min_gain", math.isfinite(self.wall_min_gain) and self.wall_min_gain >= 0))
+               if not ok]
         bad += self.shading_errors()
         if bad:
             raise ConfigError(f"PBRStageConfig: out of range: {', '.join(bad)} ({self})")
@@ -346,6 +361,46 @@ def _prior(frames: list[_FrameData], bundle, height: int, tracer=None, search_su
                              visibility=numpy_visibility(tracer) if tracer is not None else None)
 
 
+def _choose_walls(graph, bundle, frames: list[_FrameData], static_tracer, occ: OccluderSettings,
+                  cfg: PBRStageConfig, out: Path):
+    """The prior under each wall-height hypothesis (:mod:`core.stages.wall_heights`): returns the
+    chosen one's estimate and static shadow tracer (also put in each frame's tracers and in
+    ``graph.occluders``) and the summary's ``wall_heights`` entry."""
+    t0 = time.perf_counter()
+    views = capture_views(graph, capture_frames(bundle), RasterSettings(threads=cfg.threads))
+    occs = hypothesis_occluders(graph, views, occ)
+    t_build = time.perf_counter() - t0
+    ests, tracers = {}, {}
+    for h, o in occs.items():
+        graph.occluders = o
+        shadow = graph.shadow_static()
+        tracers[h] = (static_tracer if h == "none" else
+                      GaussianTracer.from_gaussians(shadow, cfg.trace_settings()) if shadow.num else None)
+        ests[h] = _prior(frames, bundle, 512, tracers[h], search_sun=True, points=cfg.prior_points,
+                         basin_quantile=cfg.prior_basin_quantile)
+    residuals = {h: e.diagnostics.get("shading_residual") for h, e in ests.items()}
+    try:
+        chosen = choose(residuals, cfg.wall_min_gain)
+    except ConfigError:  # no search found a sun under any hypothesis: the graph's own occluders
+        chosen = "none"
+    graph.occluders = occs[chosen]
+    tracer = tracers[chosen]
+    if tracer is not static_tracer:
+        for f in frames:
+            if static_tracer is not None and f.tracers and f.tracers[0] is static_tracer:
+                f.tracers.pop(0)
+            if tracer is not None:
+                f.tracers.insert(0, tracer)
+    table = {h: {"residual": (None if r is None or not math.isfinite(r) else round(float(r), 5)),
+                 "sun_dir": [round(float(x), 5) for x in ests[h].sun_dir], "occluders": int(occs[h].num)}
+             for h, r in residuals.items()}
+    walls = {"enabled": True, "chosen": chosen, "hypotheses": table, "build_seconds": round(t_build, 2),
+             "seconds": round(time.perf_counter() - t0, 2)}
+    if chosen != "none":
+        save_occluders(out / OCCLUDERS_FILE, occs[chosen], {"hypothesis": chosen, "hypotheses": table})
+    return ests[chosen], tracer, walls
+
+
 def _sun_floor(hold: SkyEvidence | None, prior_full: np.ndarray, sun_dir, h: int, cfg: PBRStageConfig):
     """``hold`` (or an evidence that holds nothing) with the prior's sun as a floor
     (:attr:`PBRStageConfig.sun_floor`) on an ``h`` x 2 ``h`` map; returns it and its summary."""
@@ -381,7 +436,8 @@ def _ldr_map(rgb: np.ndarray) -> np.ndarray:
 
 def fit_lighting(graph, bundle, out_dir: str | Path, cfg: PBRStageConfig | None = None, *,
                  on_progress: Callable[[int, int, dict], None] | None = None,
-                 resume_dir: str | Path | None = None, checkpoint_every: int = 0, sky=None) -> dict:
+                 resume_dir: str | Path | None = None, checkpoint_every: int = 0, sky=None,
+                 occluder_settings: OccluderSettings | None = None) -> dict:
     """Run the stage on a reconstructed scene graph and its bundle; write the outputs (module
     docstring) to ``out_dir`` and return the summary.
 
@@ -397,6 +453,11 @@ def fit_lighting(graph, bundle, out_dir: str | Path, cfg: PBRStageConfig | None 
             from it (a killed stage resumes).
         sky: the reconstruction's :class:`core.train.sky.SkyDome`: the sky the frames saw is held
             fixed in the map (``cfg.sky_evidence``); None = fit the whole map.
+        occluder_settings: the :class:`core.stages.occluders.OccluderSettings` the graph's
+            occluders were built with; with ``cfg.wall_hypotheses`` the unseen walls' heights are
+            chosen (:mod:`core.stages.wall_heights`), ``graph.occluders`` is replaced by the
+            chosen ones and, when they are not the graph's own, written to ``occluders.pt``.
+            None: the graph's occluders as they are.
     """
     cfg = cfg or PBRStageConfig()
     if not isinstance(cfg, PBRStageConfig):
@@ -416,8 +477,18 @@ def fit_lighting(graph, bundle, out_dir: str | Path, cfg: PBRStageConfig | None 
                               f"(<= {cfg.overcast_max_clipped_sky:.2%}): no sun in view")
                       + "; no shading search for the sun, the lighting prior is the sky fit"})
     t_prior = time.perf_counter()
-    est = _prior(frames, bundle, 512, static_tracer if cfg.prior_shadows else None, search_sun=search_sun,
-                 points=cfg.prior_points, basin_quantile=cfg.prior_basin_quantile)
+    walls: dict = {"enabled": False}
+    (out / OCCLUDERS_FILE).unlink(missing_ok=True)  # a re-run chooses afresh
+    if (cfg.wall_hypotheses and cfg.prior_shadows and search_sun and occluder_settings is not None
+            and occluder_settings.enabled and graph.occluders is not None):
+        est, static_tracer, walls = _choose_walls(graph, bundle, frames, static_tracer, occluder_settings, cfg, out)
+    else:
+        walls["why"] = ("wall_hypotheses is false" if not cfg.wall_hypotheses else
+                        "no cast shadows in the prior" if not cfg.prior_shadows else
+                        "no sun search" if not search_sun else
+                        "the graph has no occluders, or their settings are unknown")
+        est = _prior(frames, bundle, 512, static_tracer if cfg.prior_shadows else None, search_sun=search_sun,
+                     points=cfg.prior_points, basin_quantile=cfg.prior_basin_quantile)
     t_prior = time.perf_counter() - t_prior
     prior_full = np.asarray(est.envmap, np.float32)
     h = cfg.env_height
@@ -562,7 +633,7 @@ def fit_lighting(graph, bundle, out_dir: str | Path, cfg: PBRStageConfig | None 
                "capture_sky": {"sunless": sunless, **sky_stats}, "skips_fired": fired,
                "photometric_psnr_prior": psnr_before, "photometric_psnr_fitted": psnr_after,
                "sun_source": est.sun_source, "sun_dir_prior": [float(x) for x in est.sun_dir],
-               "sky_evidence": sky_stats_obs, "sun_floor": sun_floor_stats,
+               "sky_evidence": sky_stats_obs, "sun_floor": sun_floor_stats, "wall_heights": walls,
                "history": history, "resumed_from_iteration": start,
                "seconds": {"gbuffers": t_frames, "prior": t_prior, "total": time.perf_counter() - t0}}
     sep = np.full((4, 1024, 3), 255, np.uint8)
@@ -577,6 +648,11 @@ def run_stage(ctx) -> dict:
     fitted into ``<run>/pbr/``."""
     cfg: PBRStageConfig = ctx.settings
     graph, sky, graph_stage = ctx.run.load_scene(before=ctx.name)
+    occ = (ctx.run.summary(graph_stage) or {}).get("settings", {}).get("occluders")
+    try:
+        occ_settings = OccluderSettings(**occ) if isinstance(occ, dict) else None
+    except (TypeError, ConfigError):  # a summary of an older build: no hypotheses
+        occ_settings = None
     total = cfg.iterations
     bar = None
     if ctx.progress:
@@ -591,7 +667,7 @@ def run_stage(ctx) -> dict:
 
     try:
         summary = fit_lighting(graph, ctx.bundle, ctx.out_dir, cfg, on_progress=report, resume_dir=ctx.resume_dir,
-                               checkpoint_every=max(1, total // 10), sky=sky)
+                               checkpoint_every=max(1, total // 10), sky=sky, occluder_settings=occ_settings)
         shutil.rmtree(ctx.resume_dir, ignore_errors=True)  # done: the resume state is not needed
     finally:
         if bar is not None:

@@ -325,3 +325,31 @@ def test_wall_line_columns_can_be_carved_by_sky_pixels_only():
     # off the line, keeps the depth test
     assert sky_only.num - on_tree(sky_only) == free.num - on_tree(free)
     assert on_tree(sky_only) == on_tree(depth_test)
+
+
+def test_tall_unseen_lifts_the_guessed_heights_on_its_side_only():
+    # the wall at y = 5 stands left of the path (which runs along +x)
+    wall = _wall(x0=0.0, x1=30.0, z1=4.0)
+    x = np.arange(0.0, 30.0, 0.5)
+    path = [_view((x, 0.0, 1.5), (x + 10.0, 0.0, 1.5)) for x in (0.0, 1.0)]
+    far_sky = _view((25.0, -30.0, 9.0), (25.0, 5.0, 9.0), fov_deg=20.0, sky=True)
+    views = [path[0], far_sky, path[1]]
+
+    def tops(side: str, extend: float = 0.0) -> np.ndarray:
+        s = OccluderSettings(max_height_m=12.0, extend_m=extend, tall_unseen=side, **UPWARD_ONLY)
+        return _column_tops(complete_occluders(wall, views, s))
+
+    for side in ("none", "right"):  # guessed: capped at the neighbours' sky-seen roof line
+        assert tops(side)[(x >= 6.0) & (x <= 15.0)].max() < 5.0, side
+    for side in ("left", "both"):  # the unseen columns stand max_height_m tall
+        t = tops(side)
+        assert t[(x >= 6.0) & (x <= 15.0)].min() > 11.0, side
+        assert t[x >= 20.0].max() < 5.0, side  # a roof line the capture saw stays where it was seen
+    # the continued walls beyond the path's ends: the side's roof line, or full height
+    for side, lo, hi in (("none", 0.0, 5.0), ("left", 11.0, 12.5)):
+        s = OccluderSettings(max_height_m=12.0, extend_m=4.0, tall_unseen=side, **UPWARD_ONLY)
+        m = complete_occluders(wall, views, s).means.numpy()
+        behind = m[m[:, 0] < -1.6, 2]
+        assert len(behind) and lo < behind.max() < hi, (side, behind.max())
+    with pytest.raises(ConfigError, match="tall_unseen"):
+        OccluderSettings(tall_unseen="up")

@@ -64,7 +64,7 @@ def test_zero_steps_return_the_prior(tiny_scene, reconstruction, tmp_path):
 
 @pytest.mark.parametrize("field,value", [("iterations", -1), ("pixels", 0), ("lr", 0.0), ("env_height", 4),
                                          ("lambda_e_end", -0.1), ("shadow_t_min_m", -0.1), ("normal_offset_m", 11.0),
-                                         ("indirect_bounces", 17), ("indirect_bounces", 1.5)])
+                                         ("indirect_bounces", 17), ("indirect_bounces", 1.5), ("wall_min_gain", -0.01)])
 def test_bad_settings_name_the_field(field, value):
     with pytest.raises(ConfigError, match=field):
         PBRStageConfig(**{field: value})
