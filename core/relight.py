@@ -30,7 +30,8 @@ from core.io.images import write_png
 from core.io.video import write_mp4
 from core.pbr.envmap import EnvironmentMap
 from core.pbr.render import ClipRenderer, PBRSettings, write_frame_exr
-from core.render.objects import ground_fill, load_asset, object_box, prepare_edited, retime_poses
+from core.render.objects import load_asset, object_box, prepare_edited, retime_poses
+from core.render.removal import clear_removed
 from core.scene_graph import RigidNode, SceneGraph
 from core.tonemap import ldr_to_uint8
 
@@ -63,8 +64,9 @@ class ObjectEdit:
     (:func:`core.render.objects.solid_filler`), so it casts a solid shadow, not the faint one of
     a half-transparent shell. ``fill_ground`` (remove): where the removed object hid the road in
     every frame (no observed ground Gaussian under it or along its lane within 30 m), flat road
-    Gaussians coloured like the nearest observed road are added to the background
-    (:func:`core.render.objects.ground_fill`), so its pixels show road, not sky."""
+    Gaussians coloured like the road around it are added to the background
+    (:func:`core.render.removal.ground_fill`), so its pixels show road, not sky, and its remnants in
+    the background go with it (:func:`core.render.removal.object_remnants`)."""
 
     op: str
     object_id: str
@@ -151,9 +153,7 @@ def apply_edits(graph, edits: Sequence[ObjectEdit], what: str = "edits"):
                 raise ConfigError(f"{w}.object_id: no object {e.object_id!r} in the scene (objects: {names})")
             if e.fill_ground:
                 src = next(n for n in nodes if n.name == e.object_id)
-                fill = ground_fill(background, src.poses, object_box(src))
-                if fill.num:
-                    background = Gaussians.cat([background.detach(), fill.to(background.dtype)])
+                background = clear_removed(background, src)[0]
             nodes = [n for n in nodes if n.name != e.object_id]
         elif e.op == "move":
             if e.object_id not in names:

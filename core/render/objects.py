@@ -9,8 +9,6 @@ assets, their trajectories.
   inserted or moved car;
 * :func:`solid_filler` (from :mod:`core.object_solids`) - opaque Gaussians filling a node's
   inside, so that it casts a solid shadow, not the faint one of its shell;
-* :func:`ground_fill` - flat road Gaussians where a removed object hid the road in every frame
-  (else its pixels show sky after the removal);
 * :func:`vehicle_lights` - two headlights (spots forward) and two tail lights (red points back)
   on every vehicle node, in the node frame (they follow its pose), switchable per object;
 * :func:`export_asset` / :func:`load_asset` - a node as a file (Gaussians with their materials,
@@ -155,117 +153,6 @@ def prepare_edited(gaussians, size: Sequence[float], *, crop: bool = True, solid
     return g
 
 
-#: Ground fill under a removed object: grid step, how far the strip reaches past the box ahead
-#: and behind (a camera behind a car never sees the road it hides, up to where a view ray over
-#: its roof meets the ground), the strip's margin beside the box, metres.
-GROUND_FILL_CELL_M = 0.25
-GROUND_FILL_REACH_M = 30.0
-GROUND_FILL_MARGIN_M = 0.3
-#: ... and only where observed ground surrounds the cell within this distance (a hole in the road).
-GROUND_FILL_MAX_GAP_M = 4.0
-
-
-def ground_fill(background, poses, size: Sequence[float], *, cell_m: float = GROUND_FILL_CELL_M,
-                reach_m: float = GROUND_FILL_REACH_M, margin_m: float = GROUND_FILL_MARGIN_M,
-                max_gap_m: float = GROUND_FILL_MAX_GAP_M, k: int = 8):
-    """Flat road Gaussians for the ground a removed object hid in every frame.
-
-    A car that drives ahead of the camera for the whole clip hides the road under it and, for
-    tens of metres, the road beyond it: the reconstruction has no Gaussians there, so after a
-    plain removal its pixels show sky. The strip considered is, at every keyframe pose
-    ``[K, 4, 4]`` (node to world), the box's footprint (``size`` l, w, h; grown by
-    ``margin_m`` at the sides) extended ``reach_m`` ahead and behind along the node's x axis, on
-    the plane of the box's bottom (a tracked box stands on the road). Its cells (``cell_m``
-    grid, world x-y) that no observed ground Gaussian of ``background`` covers (opacity > 0.3,
-    within 0.3 m of that plane, its mean nearer than twice its largest scale, at least one cell)
-    and that observed ground surrounds within ``max_gap_m`` (no angular gap of 150 deg or more in
-    the directions to it: a hole in the road, not past its end) get one opaque disc Gaussian (opacity 0.95, 0.6 cell wide, 2 cm thick, normal up) with the
-    colour and materials of the ``k`` nearest observed ground Gaussians: the surrounding road,
-    where the road was observed nowhere. Where the background was observed it is left as it
-    is. Empty when the background has no ground Gaussian near the strip."""
-    from scipy.spatial import cKDTree
-
-    for name, v, lo, hi in (("cell_m", cell_m, 0.02, 5.0), ("reach_m", reach_m, 0.0, 500.0),
-                            ("margin_m", margin_m, 0.0, 10.0), ("max_gap_m", max_gap_m, 0.0, 100.0)):
-        if not (isinstance(v, (int, float)) and math.isfinite(v) and lo <= v <= hi):
-            raise ConfigError(f"{name}: must be a finite number in [{lo}, {hi}], got {v!r}")
-    sz = np.asarray([float(x) for x in size], np.float64)
-    if sz.shape != (3,) or not np.isfinite(sz).all() or (sz <= 0).any():
-        raise ConfigError(f"size: expected 3 finite lengths > 0, got {size!r}")
-    P = np.asarray(poses.detach().cpu().numpy() if isinstance(poses, torch.Tensor) else poses, np.float64)
-    P = P.reshape(-1, 4, 4)
-    g = background.detach()
-    if g.num == 0 or len(P) == 0:
-        return Gaussians.empty(g.dtype)
-    xs = np.arange(-sz[0] / 2 - reach_m, sz[0] / 2 + reach_m + 1e-9, cell_m)
-    ys = np.arange(-sz[1] / 2 - margin_m, sz[1] / 2 + margin_m + 1e-9, cell_m)
-    gx, gy = np.meshgrid(xs, ys, indexing="ij")
-    local = np.stack([gx.ravel(), gy.ravel(), np.full(gx.size, -sz[2] / 2), np.ones(gx.size)], 1)
-    pts = np.concatenate([(p @ local.T).T[:, :3] for p in P])
-    key = np.floor(pts[:, :2] / cell_m).astype(np.int64)
-    _, first = np.unique(key, axis=0, return_index=True)
-    key, z = key[first], pts[first, 2]
-    cells = np.concatenate([(key + 0.5) * cell_m, z[:, None]], 1)  # cell centres on the box-bottom plane
-
-    means = g.means.to(torch.float64).numpy()
-    opa = g.opacities().reshape(-1).numpy()
-    cand = np.nonzero(opa > 0.3)[0]
-    if len(cand) == 0:
-        return Gaussians.empty(g.dtype)
-    # ground Gaussians: near the plane of some strip cell (nearest cell in x-y)
-    near_cell = cKDTree(cells[:, :2]).query(means[cand, :2], k=1, distance_upper_bound=5.0)
-    has = np.isfinite(near_cell[0])
-    cand = cand[has]
-    cand = cand[np.abs(means[cand, 2] - cells[near_cell[1][has], 2]) < 0.3]
-    if len(cand) == 0:
-        return Gaussians.empty(g.dtype)
-    gm = means[cand]
-    rho = np.maximum(2.0 * g.scales().to(torch.float64).numpy()[cand, :2].max(1), cell_m)
-    tree = cKDTree(gm[:, :2])
-    kk = min(16, len(cand))
-    d, nn = tree.query(cells[:, :2], k=kk)
-    d, nn = d.reshape(len(cells), kk), nn.reshape(len(cells), kk)
-    covered = ((d < rho[nn]) & (np.abs(gm[nn, 2] - cells[:, 2:3]) < 0.3)).any(1)
-    holes = cells[~covered & (d[:, 0] <= max_gap_m)]
-    if len(holes):
-        # a hole is surrounded by observed ground: its directions to the observed ground within
-        # max_gap_m (thinned to one point per half metre) leave no angular gap of 150 deg or more
-        # (past the road's end, or at its very edge, they all lie on one side)
-        _, first = np.unique(np.floor(gm[:, :2] / 0.5).astype(np.int64), axis=0, return_index=True)
-        thin = gm[first, :2]
-        kt = min(256, len(thin))
-        dt, nt = cKDTree(thin).query(holes[:, :2], k=kt, distance_upper_bound=max_gap_m)
-        dt, nt = dt.reshape(len(holes), kt), nt.reshape(len(holes), kt)
-        ok = np.isfinite(dt)
-        vec = thin[np.where(ok, nt, 0)] - holes[:, None, :2]
-        ang = np.sort(np.where(ok, np.arctan2(vec[..., 1], vec[..., 0]), np.inf), axis=1)
-        n_ok = ok.sum(1)
-        last = np.take_along_axis(ang, np.maximum(n_ok - 1, 0)[:, None], 1)[:, 0]
-        with np.errstate(invalid="ignore"):
-            gaps = np.where(np.isfinite(ang[:, 1:]), np.diff(ang, axis=1), 0.0)
-            wrap = np.where(n_ok > 0, 2 * np.pi - (last - ang[:, 0]), 2 * np.pi)
-        widest = np.maximum(gaps.max(1, initial=0.0), wrap)
-        holes = holes[(n_ok >= 3) & (widest < np.radians(150.0))]
-    if len(holes) == 0:
-        return Gaussians.empty(g.dtype)
-    _, src = tree.query(holes[:, :2], k=min(k, len(cand)))
-    src = torch.as_tensor(cand[np.asarray(src).reshape(len(holes), -1)])
-    act = g.activated()
-
-    def near(x):
-        return x.detach()[src].mean(1)
-
-    n = len(holes)
-    quats = torch.zeros(n, 4, dtype=g.dtype)
-    quats[:, 0] = 1.0
-    normals = torch.zeros(n, 3, dtype=g.dtype)
-    normals[:, 2] = 1.0
-    scales = torch.tensor([0.6 * cell_m, 0.6 * cell_m, 0.02], dtype=g.dtype).repeat(n, 1)
-    return Gaussians.from_activated(torch.as_tensor(holes, dtype=g.dtype), quats, scales,
-                                    torch.full((n, 1), 0.95, dtype=g.dtype), near(act["colors"]), normals,
-                                    near(act["albedo"]), near(act["roughness"]), near(act["metallic"]))
-
-
 def vehicle_lights(graph, *, headlight_cd: float = 3000.0, tail_light_cd: float = TAIL_LIGHT_CD,
                    headlights: bool = True, tail_lights: bool = True, off: Sequence[str] = ()) -> list:
     """Headlights (two spots forward, :data:`HEADLIGHT_CONE_DEG`, aimed 4.6 deg down) and tail
@@ -373,5 +260,4 @@ def retime_poses(poses: torch.Tensor, time_indices: torch.Tensor, times: torch.T
 
 
 __all__ = ["VEHICLE_CLASSES", "is_vehicle", "describe_objects", "attach_sizes", "object_box", "crop_to_box",
-           "solid_filler", "prepare_edited", "ground_fill", "GROUND_FILL_MAX_GAP_M",
-           "vehicle_lights", "export_asset", "load_asset", "retime_poses"]
+           "solid_filler", "prepare_edited", "vehicle_lights", "export_asset", "load_asset", "retime_poses"]

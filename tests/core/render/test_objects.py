@@ -284,6 +284,90 @@ def test_removing_a_car_that_hid_the_road_in_every_frame_fills_the_road_from_aro
         assert np.abs(albedo_a[:, 0] - albedo_a[:, 1]).max() < 0.05, i  # grey road, not red paint
 
 
+def _tinted(g, where, rgb):
+    act = g.activated()
+    c = torch.tensor(rgb, dtype=g.means.dtype)
+    colors, albedo = act["colors"].clone(), act["albedo"].clone()
+    colors[where], albedo[where] = c, c
+    return Gaussians.from_activated(g.means, act["quats"], act["scales"], act["opacities"], colors, act["normals"],
+                                    albedo, act["roughness"], act["metallic"])
+
+
+def _holed(graph):
+    m = graph.background.means
+    hidden = ((m[:, 1] + 2.0).abs() < 1.2) & (m[:, 0] > 1.0) & (m[:, 0] < 30.0)
+    return graph.background.index(torch.nonzero(~hidden).reshape(-1))
+
+
+def test_the_ground_fill_takes_the_road_colour_not_the_objects_bleed(street, monkeypatch):
+    """The road just beside a car in every frame carries the car's colour (its silhouette blurred
+    into the road): the fill of the road it hid takes its colour from road farther from the car's
+    footprint (``bleed_m``) and of a colour typical of the ground (GROUND_FILL_OUTLIER_MAD); either
+    alone keeps a blue strip out of it, neither lets it in."""
+    import core.render.removal as removal
+    from core.render.objects import object_box
+
+    graph, _ = street
+    bg = _holed(graph)
+    mm = bg.means
+    strip = ((mm[:, 1] + 2.0).abs() < 1.8) & (mm[:, 0] > 0.4) & (mm[:, 0] < 11.8)  # within 0.6 m of the hole
+    assert int(strip.sum()) > 50
+    tinted = _tinted(bg, strip, (0.2, 0.25, 0.7))
+    node = graph.node("car0")
+
+    def blue_excess(bleed):
+        fill = removal.ground_fill(tinted, node.poses, object_box(node), bleed_m=bleed)
+        assert fill.num > 100
+        a = fill.albedo()
+        return float((a[:, 2] - 0.5 * (a[:, 0] + a[:, 1])).abs().max())
+
+    assert blue_excess(removal.GROUND_FILL_BLEED_M) < 0.05
+    assert blue_excess(0.0) < 0.05  # the colour test alone
+    monkeypatch.setattr(removal, "GROUND_FILL_OUTLIER_MAD", 1e9)  # no colour test
+    assert blue_excess(removal.GROUND_FILL_BLEED_M) < 0.05  # the distance alone
+    assert blue_excess(0.0) > 0.2  # neither: blue by the strip
+    with pytest.raises(ConfigError, match="bleed_m"):
+        removal.ground_fill(tinted, node.poses, object_box(node), bleed_m=-1.0)
+
+
+def test_a_removal_takes_the_objects_remnants_in_the_background_and_leaves_the_road(street):
+    """Blobs of the red car's paint that the background holds on the road along its path go with
+    it; a yellow line in its lane, grey road and red paint off its path stay; a grey car has no
+    remnants a colour could tell."""
+    from core.render.objects import object_box
+    from core.render.removal import clear_removed, object_remnants
+
+    graph, _ = street
+    bg = graph.background
+    mm = bg.means
+    lane = (mm[:, 1] + 2.0).abs() < 0.9
+    red = lane & (mm[:, 0] > 14.0) & (mm[:, 0] < 15.0)  # 2.8 m ahead of its last pose, in its lane
+    yellow = (mm[:, 1] + 2.0).abs() < 0.1
+    yellow &= (mm[:, 0] > 0.0) & (mm[:, 0] < 12.0) & ~red
+    off_path = ((mm[:, 1] - 6.0).abs() < 0.5) & (mm[:, 0] > 14.0) & (mm[:, 0] < 15.0)  # 8 m to the side
+    assert int(red.sum()) > 10 and int(yellow.sum()) > 10 and int(off_path.sum()) > 5
+    g = _tinted(_tinted(_tinted(bg, red, (0.55, 0.1, 0.1)), yellow, (0.8, 0.7, 0.1)), off_path, (0.55, 0.1, 0.1))
+    node = graph.node("car0")
+    rem = object_remnants(g, node.gaussians, node.poses, object_box(node))
+    assert bool(rem[red].all()) and not bool(rem[~red].any())
+    scene = SceneGraph(g, list(graph.nodes), graph.times)
+    cleared, dropped, _filled = clear_removed(g, node)
+    assert dropped == int(red.sum())
+    gone = apply_edits(scene, [ObjectEdit("remove", "car0")])
+    assert gone.background.num == cleared.num
+    alb = gone.background.albedo()
+    assert int(((alb[:, 0] > 0.5) & (alb[:, 1] < 0.2)).sum()) == int(off_path.sum())  # the red off its path stays
+    assert int(((alb[:, 0] > 0.7) & (alb[:, 2] < 0.2)).sum()) == int(yellow.sum())  # the yellow line stays
+    # a grey car: nothing told by colour
+    act = node.gaussians.activated()
+    grey = Gaussians.from_activated(act["means"], act["quats"], act["scales"], act["opacities"],
+                                    torch.full_like(act["colors"], 0.3), act["normals"], torch.full_like(act["albedo"], 0.3),
+                                    act["roughness"], act["metallic"])
+    assert not bool(object_remnants(g, grey, node.poses, object_box(node)).any())
+    with pytest.raises(ConfigError, match="size"):
+        object_remnants(g, node.gaussians, node.poses, (1.0, 0.0, 1.0))
+
+
 def test_object_t_min_changes_the_edited_objects_only_and_a_scene_without_edits_not_at_all(street):
     """``TraceSettings.t_min_objects`` (``Scenario.object_shadow_t_min_m``): without edits every
     frame renders to the bit as without it (a static node in the static BVH, the moving car's
