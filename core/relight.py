@@ -24,7 +24,6 @@ import torch
 from core.camera import Camera
 from core.conventions import is_rigid
 from core.errors import ConfigError
-from core.gaussians import Gaussians
 from core.gen.denoise import denoise
 from core.io.images import write_png
 from core.io.video import write_mp4
