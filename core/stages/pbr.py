@@ -371,13 +371,17 @@ def _choose_walls(graph, bundle, frames: list[_FrameData], static_tracer, occ: O
     occs = hypothesis_occluders(graph, views, occ)
     t_build = time.perf_counter() - t0
     ests, tracers = {}, {}
-    for h, o in occs.items():
-        graph.occluders = o
-        shadow = graph.shadow_static()
-        tracers[h] = (static_tracer if h == "none" else
-                      GaussianTracer.from_gaussians(shadow, cfg.trace_settings()) if shadow.num else None)
-        ests[h] = _prior(frames, bundle, 512, tracers[h], search_sun=True, points=cfg.prior_points,
-                         basin_quantile=cfg.prior_basin_quantile)
+    own = graph.occluders
+    try:  # each hypothesis's shadow casters: the graph's static part with its occluders
+        for h, o in occs.items():
+            graph.occluders = o
+            shadow = graph.shadow_static()
+            tracers[h] = (static_tracer if h == "none" else
+                          GaussianTracer.from_gaussians(shadow, cfg.trace_settings()) if shadow.num else None)
+            ests[h] = _prior(frames, bundle, 512, tracers[h], search_sun=True, points=cfg.prior_points,
+                             basin_quantile=cfg.prior_basin_quantile)
+    finally:
+        graph.occluders = own  # a failed search leaves the graph as it came
     residuals = {h: e.diagnostics.get("shading_residual") for h, e in ests.items()}
     try:
         chosen = choose(residuals, cfg.wall_min_gain)

@@ -96,3 +96,33 @@ def test_the_pbr_stage_records_its_choice_and_later_stages_load_it(tiny_scene, t
     assert r2.load_scene()[2] == "joint"
     assert r2.load_scene()[0].occluders.num == run.load_scene()[0].occluders.num
     assert np.isfinite(walls["seconds"])
+
+
+def test_a_failed_search_leaves_the_graphs_occluders_as_they_came(tiny_scene, tmp_path_factory, monkeypatch):
+    """The hypotheses' loop puts each hypothesis's occluders on the graph in turn; an error in a
+    search (here the third) must not leave the graph with another hypothesis's occluders."""
+    import core.stages.pbr as pbr
+    from core.bundle import open_bundle
+    from core.stages.chain import RunDir, profile_settings, run_pipeline
+
+    out = tmp_path_factory.mktemp("walls_fail") / "run"
+    run_pipeline(tiny_scene, out, "tiny", stages=("volume",), progress=False)
+    graph = RunDir(out).load_scene()[0]
+    own = graph.occluders
+    assert own is not None
+    calls = {"n": 0}
+    real = pbr._prior
+
+    def failing(*a, **k):
+        calls["n"] += 1
+        if calls["n"] == 3:
+            raise RuntimeError("search failed")
+        return real(*a, **k)
+
+    monkeypatch.setattr(pbr, "_prior", failing)
+    cfg = profile_settings("tiny", "pbr")
+    b = open_bundle(tiny_scene)
+    frames, static_tracer = pbr._frames(graph, b, cfg)
+    with pytest.raises(RuntimeError, match="search failed"):
+        pbr._choose_walls(graph, b, frames, static_tracer, OccluderSettings(), cfg, out / "pbr_try")
+    assert graph.occluders is own and calls["n"] == 3
