@@ -29,6 +29,14 @@ def test_choose_takes_the_smallest_finite_residual_and_prefers_the_guess_on_a_ti
     res = {"none": 0.3197, "left": 0.31967, "right": 0.31439, "both": 0.31458}
     assert choose(res) == "right" and choose(res, 0.01) == "right" and choose(res, 0.02) == "none"
     assert choose({"none": 0.40, "left": 0.30, "both": 0.299}, 0.01) == "left"
+    # the stage's default margin: a near-tie keeps the simpler hypothesis (dev4: "right" beat the
+    # guess by less than 1e-5; the default scene: "sky+right" beat "right" by 0.2%)
+    from core.stages.pbr import PBRStageConfig
+
+    g = PBRStageConfig().wall_min_gain
+    assert choose({"none": 0.188912, "right": 0.188905}, g) == "none"
+    assert choose({"none": 0.33156, "right": 0.31160, "sky": 0.31239, "sky+right": 0.31098}, g) == "right"
+    assert choose({"none": 0.11654, "sky": 0.11588}, g) == "sky"  # dev3: 0.57% better
     with pytest.raises(ConfigError, match="min_gain"):
         choose(res, -0.1)
     with pytest.raises(ConfigError, match="finite"):
