@@ -167,8 +167,9 @@ class PBRStageConfig(StageShading):
     (quick, pbr and joint re-run on one volume2 each; ``benchmarks/results/wall_min_gain.json``):
     at 0 dev4 took "right" over the guess by less than 1e-5 and the default scene "sky+right"
     over "right" by 0.2%; at 0.002 relight 22.67 -> 23.28 dB and 20.74 -> 22.05 dB, re-render
-    22.35 -> 22.32 and 22.88 -> 23.67 dB, sun unchanged / 8.5 -> 8.9 deg; the choices of dev1,
-    dev2, dev3 and the earlier default reconstruction stay as they were."""
+    22.35 -> 22.32 and 22.88 -> 23.67 dB, sun unchanged / 8.5 -> 8.9 deg; dev1 moves from
+    "sky+left" to "sky" (the prior's sun 21.4 -> 21.5 deg), dev2, dev3 and the earlier default
+    reconstruction keep theirs."""
     prior_basin_quantile: float = 0.05
     """The prior's sun search refines only around the low region of its coarse grid
     (:attr:`core.lighting.prior.LightingSettings.basin_quantile`). Without it the default
