@@ -53,6 +53,15 @@ GROUND_FILL_BLEED_M = 1.0
 GROUND_FILL_OUTLIER_MAD = 3.0
 
 
+def _box_and_poses(size: Sequence[float], poses) -> tuple[np.ndarray, np.ndarray]:
+    """(``size`` as [3] float64, ``poses`` as [K, 4, 4] float64); ConfigError names a bad size."""
+    sz = np.asarray([float(x) for x in size], np.float64)
+    if sz.shape != (3,) or not np.isfinite(sz).all() or (sz <= 0).any():
+        raise ConfigError(f"size: expected 3 finite lengths > 0, got {size!r}")
+    P = np.asarray(poses.detach().cpu().numpy() if isinstance(poses, torch.Tensor) else poses, np.float64)
+    return sz, P.reshape(-1, 4, 4)
+
+
 def ground_fill(background, poses, size: Sequence[float], *, cell_m: float = GROUND_FILL_CELL_M,
                 reach_m: float = GROUND_FILL_REACH_M, margin_m: float = GROUND_FILL_MARGIN_M,
                 max_gap_m: float = GROUND_FILL_MAX_GAP_M, bleed_m: float = GROUND_FILL_BLEED_M, k: int = 16):
@@ -82,11 +91,7 @@ def ground_fill(background, poses, size: Sequence[float], *, cell_m: float = GRO
                             ("bleed_m", bleed_m, 0.0, 100.0)):
         if not (isinstance(v, (int, float)) and math.isfinite(v) and lo <= v <= hi):
             raise ConfigError(f"{name}: must be a finite number in [{lo}, {hi}], got {v!r}")
-    sz = np.asarray([float(x) for x in size], np.float64)
-    if sz.shape != (3,) or not np.isfinite(sz).all() or (sz <= 0).any():
-        raise ConfigError(f"size: expected 3 finite lengths > 0, got {size!r}")
-    P = np.asarray(poses.detach().cpu().numpy() if isinstance(poses, torch.Tensor) else poses, np.float64)
-    P = P.reshape(-1, 4, 4)
+    sz, P = _box_and_poses(size, poses)
     g = background.detach()
     if g.num == 0 or len(P) == 0:
         return Gaussians.empty(g.dtype)
@@ -233,11 +238,7 @@ def object_remnants(background, object_gaussians, poses, size: Sequence[float], 
     near the strip's bottom plane), and its chromaticity lies nearer the object's coloured
     Gaussians' median chromaticity than the ground's. None for an achromatic object
     (:data:`REMNANT_MIN_COLOURED`)."""
-    sz = np.asarray([float(x) for x in size], np.float64)
-    if sz.shape != (3,) or not np.isfinite(sz).all() or (sz <= 0).any():
-        raise ConfigError(f"size: expected 3 finite lengths > 0, got {size!r}")
-    P = np.asarray(poses.detach().cpu().numpy() if isinstance(poses, torch.Tensor) else poses, np.float64)
-    P = P.reshape(-1, 4, 4)
+    sz, P = _box_and_poses(size, poses)
     g = background.detach()
     none = torch.zeros(g.num, dtype=torch.bool)
     if g.num == 0 or len(P) == 0 or object_gaussians.num == 0:
