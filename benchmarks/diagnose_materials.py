@@ -24,10 +24,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from core.bundle import open_bundle  # noqa: E402
 from core.camera import Camera  # noqa: E402
-from core.metrics import angular_error_deg, si_psnr  # noqa: E402
 from core.numerics import OPACITY_EPS  # noqa: E402
 from core.raster import RasterSettings, rasterize_gaussians  # noqa: E402
 from core.stages.chain import GRAPH_STAGES, STAGES, RunDir  # noqa: E402
+from core.synth.evaluate import frame_intrinsics  # noqa: E402
 
 METAL_THRESHOLD = 0.5
 
@@ -72,15 +72,9 @@ def stage_materials(run: RunDir, bundle, stage: str, threads: int = 2) -> dict:
             r = rasterize_gaussians(g, Camera.from_bundle(c, f), settings=rs)
             gtl = bundle.load_ground_truth(f)
             mask = torch.from_numpy(gtl["depth"].reshape(c.height, c.width) > 0)
-            inv = 1.0 / r.opacity.clamp_min(OPACITY_EPS)
-            row = {"albedo_si_psnr": float(si_psnr((r.albedo * inv).clamp(0, 1).float()[None],
-                                                   torch.from_numpy(gtl["albedo"])[None], mask[None])),
-                   "normal_mae_deg": float(angular_error_deg(r.normal.float()[None],
-                                                             torch.from_numpy(gtl["normal"])[None], mask[None]))}
-            rough = (r.roughness * inv).clamp(0, 1)[..., 0].float()
-            e = (rough - torch.from_numpy(gtl["roughness"]).reshape(mask.shape))[mask]
-            row["roughness_rmse"] = float(torch.sqrt((e ** 2).mean()))
-            met = (r.metallic * inv).clamp(0, 1)[..., 0].float()
+            row = frame_intrinsics(r, gtl, c.height, c.width)
+            del row["metallic_rmse"]  # pooled over the frames below, with its metal / rest split
+            met = (r.metallic * (1.0 / r.opacity.clamp_min(OPACITY_EPS))).clamp(0, 1)[..., 0].float()
             acc = _add(acc, _split(met[mask], torch.from_numpy(gtl["metallic"]).reshape(mask.shape)[mask].float()))
             rows.append(row)
     out = {k: float(np.mean([r[k] for r in rows])) for k in rows[0]}

@@ -60,11 +60,8 @@ def capture(run: str, scene: str, profile: str) -> tuple[dict, str]:
     def search(score_fn, s):
         sun, res, d = orig_search(score_fn, s)
         c = searches[-1]
-        v = c["vis_of"](sun[None])[0] if c["vis_of"] is not None else 1.0
-        nd = np.maximum(c["nrm"] @ sun, 0.0) * v
-        x = np.stack([np.ones_like(nd), (1.0 + c["nrm"][:, 2]) / 2.0, nd], 1)
-        coef, *_ = np.linalg.lstsq(x, c["shade"], rcond=None)
-        c["absres"] = np.abs(c["shade"] - x @ coef)
+        v = c["vis_of"](sun[None])[0] if c["vis_of"] is not None else None
+        c["absres"] = np.abs(prior._shading_residuals(c["nrm"], c["shade"], sun, v)[0])
         return sun, res, d
 
     chosen = {}

@@ -331,16 +331,21 @@ def _check_inputs(frames, cameras, sky, depth, normals):
     return f, p, s, d, n
 
 
-def _shading_fit(nrm, shading, s_dir, vis=None):
+def _shading_residuals(nrm, shading, s_dir, vis=None):
     """Least squares of the Lambertian shading model S = a + c (1 + n_z) / 2 + e V max(0, n . s)
     on surface samples (``vis``: the samples' visibility V of direction ``s_dir``, None = 1);
-    returns (mean |residual|, (a, c, e)); inf when e <= 0 (no sun term)."""
+    returns (per-sample residuals [N], (a, c, e))."""
     nd = np.maximum(nrm @ s_dir, 0.0)
     if vis is not None:
         nd = nd * vis
     x = np.stack([np.ones_like(nd), (1.0 + nrm[:, 2]) / 2.0, nd], 1)
     coef, *_ = np.linalg.lstsq(x, shading, rcond=None)
-    r = shading - x @ coef
+    return shading - x @ coef, coef
+
+
+def _shading_fit(nrm, shading, s_dir, vis=None):
+    """:func:`_shading_residuals` as (mean |residual|, (a, c, e)); inf when e <= 0 (no sun term)."""
+    r, coef = _shading_residuals(nrm, shading, s_dir, vis)
     return (float(np.mean(np.abs(r))) if coef[2] > 0 else math.inf), coef
 
 

@@ -110,6 +110,23 @@ def relit_reference_ldr(bundle, relit_name: str, frame_id: str) -> np.ndarray:
     return hdr_to_ldr(bundle.load_relit_frame(relit_name, frame_id), m.ldr_exposure, m.ldr_gamma)
 
 
+def frame_intrinsics(r, gt_layers: dict, height: int, width: int) -> dict:
+    """The intrinsics metrics of one rasterized frame ``r`` (:func:`core.raster.rasterize_gaussians`
+    output, premultiplied layers divided by its opacity) against the bundle's ground-truth layers
+    of the frame, on non-sky pixels (true depth > 0): albedo si-PSNR, normal MAE (degrees),
+    roughness and metallic RMSE."""
+    mask = torch.from_numpy(gt_layers["depth"].reshape(height, width) > 0)
+    inv = 1.0 / r.opacity.clamp_min(OPACITY_EPS)
+    row = {"albedo_si_psnr": float(si_psnr((r.albedo * inv).clamp(0, 1).float()[None],
+                                           torch.from_numpy(gt_layers["albedo"])[None], mask[None])),
+           "normal_mae_deg": float(angular_error_deg(r.normal.float()[None], torch.from_numpy(gt_layers["normal"])[None],
+                                                     mask[None]))}
+    for k in ("roughness", "metallic"):
+        e = ((getattr(r, k) * inv).clamp(0, 1)[..., 0].float() - torch.from_numpy(gt_layers[k]).reshape(mask.shape))[mask]
+        row[f"{k}_rmse"] = float(torch.sqrt((e ** 2).mean())) if e.numel() else float("nan")
+    return row
+
+
 def evaluate_run(run_dir: str | Path, bundle=None, settings: EvalSettings | None = None, *,
                  out: str | Path | None = None, on_step: Callable[[str], None] | None = None) -> dict:
     """Evaluate the reconstruction in ``run_dir`` (a :mod:`core.stages.chain` run) on ``bundle``
@@ -149,17 +166,7 @@ def evaluate_run(run_dir: str | Path, bundle=None, settings: EvalSettings | None
             rgb = r.color + (1 - r.opacity) * sky(dirs).to(g.dtype)
             img = b.load_image(f)
             nvs.append(_img_metrics(rgb.float().numpy(), img, s.flip))
-            gtl = b.load_ground_truth(f)
-            mask = torch.from_numpy(gtl["depth"].reshape(c.height, c.width) > 0)
-            inv = 1.0 / r.opacity.clamp_min(OPACITY_EPS)
-            row = {"albedo_si_psnr": float(si_psnr((r.albedo * inv).clamp(0, 1).float()[None],
-                                                   torch.from_numpy(gtl["albedo"])[None], mask[None])),
-                   "normal_mae_deg": float(angular_error_deg(r.normal.float()[None], torch.from_numpy(gtl["normal"])[None],
-                                                             mask[None]))}
-            for k in ("roughness", "metallic"):
-                e = ((getattr(r, k) * inv).clamp(0, 1)[..., 0].float() - torch.from_numpy(gtl[k]).reshape(mask.shape))[mask]
-                row[f"{k}_rmse"] = float(torch.sqrt((e ** 2).mean())) if e.numel() else float("nan")
-            intr.append(row)
+            intr.append(frame_intrinsics(r, b.load_ground_truth(f), c.height, c.width))
     note("intrinsics and novel views")
     res["intrinsics"] = _mean(intr)
     res["nvs"] = _mean(nvs)
@@ -229,4 +236,4 @@ def summary_row(res: dict) -> dict:
     return {k: (round(v, 4) if isinstance(v, float) and math.isfinite(v) else v) for k, v in row.items()}
 
 
-__all__ = ["EvalSettings", "evaluate_run", "summary_row"]
+__all__ = ["EvalSettings", "evaluate_run", "frame_intrinsics", "summary_row"]
