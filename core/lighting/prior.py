@@ -150,7 +150,9 @@ class LightingSettings:
     landscape is noisy: its lowest point jumps between narrow valleys with the random surface
     subset, while the low region stays put. (Tried beside it and not kept: the sky's aureole as a
     second cue, a parametric sky fitted around each candidate: within 0.4 deg on the three
-    development scenes.)"""
+    development scenes. Again on two low-sun development streets, as a weighted cue over the
+    frames' sky luminance with a 15 and a 45 deg glow term: the sky band showed no glow, the sun
+    moved 8.2 -> 9.5 and 5.5 -> 14.9 deg, ``benchmarks/results/low_sun_dev_quick.json``.)"""
     chroma_weight: float = 0.0
     """Weight of the colour cue in the ``"lambert"`` sun search (0 = off: luminance only). Sunlight
     is warmer than skylight, so the red/blue ratio of a sample's shading (radiance / albedo, per
