@@ -170,6 +170,13 @@ class PBRStageConfig(StageShading):
     22.35 -> 22.32 and 22.88 -> 23.67 dB, sun unchanged / 8.5 -> 8.9 deg; dev1 moves from
     "sky+left" to "sky" (the prior's sun 21.4 -> 21.5 deg), dev2, dev3 and the earlier default
     reconstruction keep theirs."""
+    wall_shadows: str = "chosen"
+    """Whose occluders the stage, the joint stage and every later render use when a wall
+    hypothesis is chosen: ``"chosen"`` (the hypothesis that gave the prior's sun) or ``"guess"``
+    (the volume stage's occluders, ``"none"``; the chosen hypothesis then only gives the prior).
+    Measured on dev3 (quick, ``benchmarks/results/low_sun_dev_quick.json``): "right" raised
+    unseen walls to ~20 m over 6-15 m true buildings, relight 19.06 dB against 22.00 with the
+    guess's shadows and the same sun."""
     prior_basin_quantile: float = 0.05
     """The prior's sun search refines only around the low region of its coarse grid
     (:attr:`core.lighting.prior.LightingSettings.basin_quantile`). Without it the default
@@ -237,6 +244,8 @@ class PBRStageConfig(StageShading):
                               f"{self.sun_floor_deg}")
         if not isinstance(self.sky_evidence, SkyEvidenceSettings):
             raise ConfigError(f"sky_evidence: expected SkyEvidenceSettings, got {type(self.sky_evidence).__name__}")
+        if self.wall_shadows not in ("chosen", "guess"):
+            raise ConfigError(f"wall_shadows: must be 'chosen' or 'guess', got {self.wall_shadows!r}")
         if not isinstance(self.skip_sun_search, bool):
             raise ConfigError(f"skip_sun_search: expected true or false, got {self.skip_sun_search!r}")
         bad = [n for n, ok in (("iterations", self.iterations >= 0), ("pixels", self.pixels >= 1),
@@ -395,8 +404,9 @@ def _choose_walls(graph, bundle, frames: list[_FrameData], static_tracer, occ: O
         chosen = choose(residuals, cfg.wall_min_gain)
     except ConfigError:  # no search found a sun under any hypothesis: the graph's own occluders
         chosen = "none"
-    graph.occluders = occs[chosen]
-    tracer = tracers[chosen]
+    render = chosen if cfg.wall_shadows == "chosen" else "none"  # whose shadows the stage renders
+    graph.occluders = occs[render]
+    tracer = tracers[render]
     if tracer is not static_tracer:
         for f in frames:
             if static_tracer is not None and f.tracers and f.tracers[0] is static_tracer:
@@ -406,10 +416,10 @@ def _choose_walls(graph, bundle, frames: list[_FrameData], static_tracer, occ: O
     table = {h: {"residual": (None if r is None or not math.isfinite(r) else round(float(r), 5)),
                  "sun_dir": [round(float(x), 5) for x in ests[h].sun_dir], "occluders": int(occs[h].num)}
              for h, r in residuals.items()}
-    walls = {"enabled": True, "chosen": chosen, "hypotheses": table, "build_seconds": round(t_build, 2),
-             "seconds": round(time.perf_counter() - t0, 2)}
-    if chosen != "none":
-        save_occluders(out / OCCLUDERS_FILE, occs[chosen], {"hypothesis": chosen, "hypotheses": table})
+    walls = {"enabled": True, "chosen": chosen, "rendered_with": render, "hypotheses": table,
+             "build_seconds": round(t_build, 2), "seconds": round(time.perf_counter() - t0, 2)}
+    if render != "none":
+        save_occluders(out / OCCLUDERS_FILE, occs[render], {"hypothesis": render, "hypotheses": table})
     return ests[chosen], tracer, walls
 
 

@@ -134,3 +134,38 @@ def test_a_failed_search_leaves_the_graphs_occluders_as_they_came(tiny_scene, tm
     with pytest.raises(RuntimeError, match="search failed"):
         pbr._choose_walls(graph, b, frames, static_tracer, OccluderSettings(), cfg, out / "pbr_try")
     assert graph.occluders is own and calls["n"] == 3
+
+
+@pytest.mark.parametrize("wall_shadows", ["chosen", "guess"])
+def test_wall_shadows_guess_keeps_the_graphs_occluders_for_rendering(tiny_scene, tmp_path_factory, monkeypatch,
+                                                                     wall_shadows):
+    """With ``PBRStageConfig.wall_shadows`` "guess" the chosen hypothesis gives the prior only:
+    the graph keeps its own occluders, no occluders file is written and the summary says so; with
+    "chosen" the chosen hypothesis's occluders replace them and are saved."""
+    import dataclasses
+
+    import core.stages.pbr as pbr
+    from core.bundle import open_bundle
+    from core.stages.chain import RunDir, profile_settings, run_pipeline
+
+    out = tmp_path_factory.mktemp(f"walls_{wall_shadows}") / "run"
+    run_pipeline(tiny_scene, out, "tiny", stages=("volume",), progress=False)
+    graph = RunDir(out).load_scene()[0]
+    own = graph.occluders
+    monkeypatch.setattr(pbr, "choose", lambda residuals, min_gain: "both")
+    cfg = dataclasses.replace(profile_settings("tiny", "pbr"), wall_shadows=wall_shadows)
+    b = open_bundle(tiny_scene)
+    frames, static_tracer = pbr._frames(graph, b, cfg)
+    dest = out / "pbr_try"
+    dest.mkdir()
+    est, tracer, walls = pbr._choose_walls(graph, b, frames, static_tracer, OccluderSettings(), cfg, dest)
+    assert walls["chosen"] == "both" and np.isfinite(est.sun_dir).all()
+    if wall_shadows == "guess":
+        assert walls["rendered_with"] == "none" and tracer is static_tracer
+        assert graph.occluders.num == own.num and torch.equal(graph.occluders.means, own.means)
+        assert not (dest / OCCLUDERS_FILE).exists()
+    else:
+        assert walls["rendered_with"] == "both" and graph.occluders is not own
+        assert graph.occluders.num > own.num and (dest / OCCLUDERS_FILE).is_file()
+    with pytest.raises(ConfigError, match="wall_shadows"):
+        dataclasses.replace(cfg, wall_shadows="tallest")
