@@ -81,6 +81,7 @@ def test_hypotheses_keep_the_graphs_own_occluders_and_lift_one_side():
 
 @pytest.mark.mitsuba
 def test_the_pbr_stage_records_its_choice_and_later_stages_load_it(tiny_scene, tmp_path_factory):
+    from core.stages.pbr import PBRStageConfig
     from core.stages.chain import RunDir, run_pipeline
 
     out = tmp_path_factory.mktemp("walls") / "run"
@@ -91,7 +92,8 @@ def test_the_pbr_stage_records_its_choice_and_later_stages_load_it(tiny_scene, t
     own = run.load_scene(before="pbr")[0].occluders
     res = {h: v["residual"] for h, v in walls["hypotheses"].items()}
     assert walls["chosen"] == choose({h: (math.inf if r is None else r) for h, r in res.items()})
-    assert (out / "pbr" / OCCLUDERS_FILE).is_file() == (walls["chosen"] != "none")
+    assert walls["rendered_with"] == (walls["chosen"] if PBRStageConfig().wall_shadows == "chosen" else "none")
+    assert (out / "pbr" / OCCLUDERS_FILE).is_file() == (walls["rendered_with"] != "none")
     # a choice in the pbr directory replaces the graph's occluders for the joint stage and after,
     # not for the stages before it; the joint stage's own graph is not replaced
     copy = tmp_path_factory.mktemp("walls") / "copy"
