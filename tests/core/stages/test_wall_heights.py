@@ -108,16 +108,25 @@ def test_the_pbr_stage_records_its_choice_and_later_stages_load_it(tiny_scene, t
     assert np.isfinite(walls["seconds"])
 
 
-def test_a_failed_search_leaves_the_graphs_occluders_as_they_came(tiny_scene, tmp_path_factory, monkeypatch):
+@pytest.fixture(scope="module")
+def volume_run(tiny_scene, tmp_path_factory):
+    """A tiny-profile run of the volume stage alone (its graph carries the occluder guess)."""
+    from core.stages.chain import run_pipeline
+
+    out = tmp_path_factory.mktemp("walls_volume") / "run"
+    run_pipeline(tiny_scene, out, "tiny", stages=("volume",), progress=False)
+    return out
+
+
+def test_a_failed_search_leaves_the_graphs_occluders_as_they_came(tiny_scene, volume_run, tmp_path_factory,
+                                                                  monkeypatch):
     """The hypotheses' loop puts each hypothesis's occluders on the graph in turn; an error in a
     search (here the third) must not leave the graph with another hypothesis's occluders."""
     import core.stages.pbr as pbr
     from core.bundle import open_bundle
-    from core.stages.chain import RunDir, profile_settings, run_pipeline
+    from core.stages.chain import RunDir, profile_settings
 
-    out = tmp_path_factory.mktemp("walls_fail") / "run"
-    run_pipeline(tiny_scene, out, "tiny", stages=("volume",), progress=False)
-    graph = RunDir(out).load_scene()[0]
+    graph = RunDir(volume_run).load_scene()[0]
     own = graph.occluders
     assert own is not None
     calls = {"n": 0}
@@ -134,32 +143,29 @@ def test_a_failed_search_leaves_the_graphs_occluders_as_they_came(tiny_scene, tm
     b = open_bundle(tiny_scene)
     frames, static_tracer = pbr._frames(graph, b, cfg)
     with pytest.raises(RuntimeError, match="search failed"):
-        pbr._choose_walls(graph, b, frames, static_tracer, OccluderSettings(), cfg, out / "pbr_try")
+        pbr._choose_walls(graph, b, frames, static_tracer, OccluderSettings(), cfg,
+                          tmp_path_factory.mktemp("walls_fail") / "pbr_try")
     assert graph.occluders is own and calls["n"] == 3
 
 
+@pytest.mark.mitsuba
 @pytest.mark.parametrize("wall_shadows", ["chosen", "guess"])
-def test_wall_shadows_guess_keeps_the_graphs_occluders_for_rendering(tiny_scene, tmp_path_factory, monkeypatch,
-                                                                     wall_shadows):
+def test_wall_shadows_guess_keeps_the_graphs_occluders_for_rendering(tiny_scene, volume_run, tmp_path_factory,
+                                                                     monkeypatch, wall_shadows):
     """With ``PBRStageConfig.wall_shadows`` "guess" the chosen hypothesis gives the prior only:
     the graph keeps its own occluders, no occluders file is written and the summary says so; with
     "chosen" the chosen hypothesis's occluders replace them and are saved."""
-    import dataclasses
-
     import core.stages.pbr as pbr
     from core.bundle import open_bundle
-    from core.stages.chain import RunDir, profile_settings, run_pipeline
+    from core.stages.chain import RunDir, profile_settings
 
-    out = tmp_path_factory.mktemp(f"walls_{wall_shadows}") / "run"
-    run_pipeline(tiny_scene, out, "tiny", stages=("volume",), progress=False)
-    graph = RunDir(out).load_scene()[0]
+    graph = RunDir(volume_run).load_scene()[0]
     own = graph.occluders
     monkeypatch.setattr(pbr, "choose", lambda residuals, min_gain: "both")
-    cfg = dataclasses.replace(profile_settings("tiny", "pbr"), wall_shadows=wall_shadows)
+    cfg = replace(profile_settings("tiny", "pbr"), wall_shadows=wall_shadows)
     b = open_bundle(tiny_scene)
     frames, static_tracer = pbr._frames(graph, b, cfg)
-    dest = out / "pbr_try"
-    dest.mkdir()
+    dest = tmp_path_factory.mktemp(f"walls_{wall_shadows}")
     est, tracer, walls = pbr._choose_walls(graph, b, frames, static_tracer, OccluderSettings(), cfg, dest)
     assert walls["chosen"] == "both" and np.isfinite(est.sun_dir).all()
     if wall_shadows == "guess":
@@ -170,4 +176,4 @@ def test_wall_shadows_guess_keeps_the_graphs_occluders_for_rendering(tiny_scene,
         assert walls["rendered_with"] == "both" and graph.occluders is not own
         assert graph.occluders.num > own.num and (dest / OCCLUDERS_FILE).is_file()
     with pytest.raises(ConfigError, match="wall_shadows"):
-        dataclasses.replace(cfg, wall_shadows="tallest")
+        replace(cfg, wall_shadows="tallest")
