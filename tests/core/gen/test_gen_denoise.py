@@ -89,3 +89,30 @@ def test_diffusion_backend_runs_a_model(frame, small_models):
     assert res.backend == "diffusion" and res.frames.shape == (2, 40, 64, 3)
     assert res.frames.min() >= 0 and res.frames.max() <= 1
     assert np.abs(res.frames[0] - res.frames[1]).max() < 1e-5  # same input, shared noise: same output
+
+
+def test_diffusion_keeps_the_sky_and_only_the_sky(frame, small_models):
+    """Sky pixels (zero normal: the map itself, noise-free) keep the input; the surface pixels are
+    the model's, the same with and without ``keep_sky``."""
+    gt, c2w, env = frame
+    ldr = hdr_to_ldr(gt["rgb"])[:40, :64]
+    sub = lambda a: np.asarray(a)[:40, :64]  # noqa: E731
+    sky = np.linalg.norm(sub(gt["normal"]), axis=-1) < 0.5
+    assert 0 < sky.mean() < 1  # the crop holds sky and surface
+
+    def run(keep: bool) -> np.ndarray:
+        return denoise(ldr[None], sub(gt["albedo"])[None], sub(gt["normal"])[None], backend="diffusion",
+                       gbuffer={k: sub(gt[k])[None] for k in ("depth", "roughness", "metallic")},
+                       cam_to_world=c2w[None], env=env,
+                       settings=DenoiseSettings(threads=1, model_path=str(small_models["fwd_a"][1]),
+                                                sampler=SamplerSettings(steps=2), keep_sky=keep)).frames[0]
+
+    kept, model = run(True), run(False)
+    assert np.array_equal(kept[sky], ldr[sky].astype(np.float32))
+    assert np.abs(model[sky] - ldr[sky]).max() > 1e-3  # the model alone changes the sky
+    assert np.allclose(kept[~sky], model[~sky], atol=1e-6)
+
+
+def test_keep_sky_must_be_a_bool():
+    with pytest.raises(ConfigError, match="keep_sky"):
+        DenoiseSettings(keep_sky="yes")
