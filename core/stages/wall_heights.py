@@ -18,11 +18,18 @@ roof (on dev1, windows of the right-hand buildings stopped the walls whose shado
 
 Here the capture decides. The prior's sun search runs once per hypothesis of :data:`HYPOTHESES`
 (each side's unseen walls at their guessed height or at ``max_height_m``; the wall lines carved by
-the depth test or by sky pixels only), every time over the same surface samples. The hypothesis whose best sun leaves the smallest shading residual wins. Its
-occluders replace the scene graph's for the rest of the pbr stage, for the joint stage and for
-every later render: the pbr stage writes them to ``<run>/pbr/occluders.pt`` (:func:`save_occluders`),
-and :meth:`core.stages.chain.RunDir.load_scene` applies them. Not in the paper: its capture saw
-the facades whole.
+the depth test or by sky pixels only), every time over the same surface samples. The hypothesis
+whose best sun leaves the smallest shading residual wins, and its sun and sky are the prior's.
+Whose occluders cast the shadows afterwards is :attr:`core.stages.pbr.PBRStageConfig.wall_shadows`:
+
+* ``"guess"`` (the default): the volume stage's own occluders, for the rest of the pbr stage, the
+  joint stage and every later render. A winning hypothesis's walls stand at ``max_height_m``
+  where the true buildings may be half as tall, and their shadows darkened relit streets
+  (dev3: the courtyard road at 0.06-0.27x Mitsuba's light);
+* ``"chosen"``: the winner's occluders; the pbr stage writes them to ``<run>/pbr/occluders.pt``
+  (:func:`save_occluders`) and :meth:`core.stages.chain.RunDir.load_scene` applies them.
+
+Not in the paper: its capture saw the facades whole.
 """
 
 from __future__ import annotations
