@@ -10,10 +10,12 @@ raw LDR clip:
 
 * ``none``: the raw render;
 * ``oidn``: OIDN with the albedo and normal guides (the product's default);
-* ``diffusion``: the forward model's SDEdit of the raw render, its output everywhere
-  (``DenoiseSettings.keep_sky`` off); ``diffusion_product``: ``--denoiser diffusion`` as the
-  product runs it (the defaults: the input's sky pixels kept);
-* ``diffusion_on_oidn_tau{t}``: SDEdit of the OIDN result at start level ``t``;
+* ``diffusion``: the forward model's SDEdit of the raw render at sigma_tau 0.4, its output
+  everywhere (the paper's forward pass; the product's backend before this benchmark);
+  ``diffusion_product``: ``--denoiser diffusion`` as the product runs it now
+  (``DenoiseSettings`` defaults);
+* ``diffusion_on_oidn_tau{t}``: SDEdit of the OIDN result at start level ``t``, the model's
+  output everywhere;
 * ``lowpass_s{s}`` and ``lowpass_on_oidn_tau{t}_s{s}``: OIDN plus the Gaussian low-pass
   (sigma ``s`` pixels) of the diffusion result's difference to OIDN: the model's tone and colour
   corrections with OIDN's structure;
@@ -42,27 +44,12 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from core.bundle import open_bundle  # noqa: E402
-from core.gen.denoise import DenoiseSettings, denoise  # noqa: E402
+from core.gen.denoise import DenoiseSettings, denoise, surface_lowpass  # noqa: E402
 from core.gen.edm import SamplerSettings  # noqa: E402
 from core.io.exr import read_exr  # noqa: E402
 from core.render.scenario import Scenario, render_scenario, views_from_frames  # noqa: E402
 from core.stages.chain import RunDir  # noqa: E402
 from core.synth.evaluate import EvalSettings, _img_metrics, relit_reference_ldr  # noqa: E402
-
-
-def gaussian_lowpass(x: np.ndarray, sigma_px: float) -> np.ndarray:
-    """Separable Gaussian blur of [T, H, W, C] over H and W (reflect padding)."""
-    r = max(1, int(round(3 * sigma_px)))
-    k = np.exp(-0.5 * (np.arange(-r, r + 1) / sigma_px) ** 2)
-    k = torch.from_numpy((k / k.sum()).astype(np.float32))
-    t = torch.from_numpy(np.ascontiguousarray(x.transpose(0, 3, 1, 2), np.float32))
-    n, c, h, w = t.shape
-    t = t.reshape(n * c, 1, h, w)
-    t = torch.nn.functional.pad(t, (r, r, 0, 0), mode="reflect")
-    t = torch.nn.functional.conv2d(t, k.reshape(1, 1, 1, -1))
-    t = torch.nn.functional.pad(t, (0, 0, r, r), mode="reflect")
-    t = torch.nn.functional.conv2d(t, k.reshape(1, 1, -1, 1))
-    return t.reshape(n, c, h, w).numpy().transpose(0, 2, 3, 1)
 
 
 def raw_relit(graph, bundle, views, env: np.ndarray, s: EvalSettings) -> dict:
@@ -82,19 +69,11 @@ def raw_relit(graph, bundle, views, env: np.ndarray, s: EvalSettings) -> dict:
             "c2w": np.stack([v.camera.pose_numpy() for v in views])}
 
 
-def masked_lowpass(x: np.ndarray, mask: np.ndarray, sigma_px: float) -> np.ndarray:
-    """:func:`gaussian_lowpass` of ``x`` [T, H, W, C] over the pixels where ``mask`` [T, H, W] is
-    true (normalised convolution), zero elsewhere."""
-    m = mask[..., None].astype(np.float32)
-    num = gaussian_lowpass(x * m, sigma_px)
-    den = gaussian_lowpass(np.broadcast_to(m, x.shape).copy(), sigma_px)
-    return np.where(m > 0, num / np.maximum(den, 1e-6), 0.0).astype(np.float32)
-
-
 def variants(raw: dict, env: np.ndarray, taus, sigmas) -> dict[str, np.ndarray]:
     g = raw["gbuffer"]
     alb, nrm = np.clip(g["albedo"], 0, 1), g["normal"]
-    surface = g["depth"][..., 0] > 0  # [T, H, W]; the sky (the map seen directly) has depth 0
+    surface = np.linalg.norm(nrm, axis=-1) >= 0.5  # [T, H, W]; the sky (the map seen directly): zero normal
+    everywhere = np.ones_like(surface)
     kw = dict(gbuffer={k: g[k] for k in ("depth", "roughness", "metallic")}, cam_to_world=raw["c2w"], env=env)
     out = {"none": raw["ldr"]}
     oidn = denoise(raw["ldr"], alb, nrm, backend="oidn").frames
@@ -105,16 +84,19 @@ def variants(raw: dict, env: np.ndarray, taus, sigmas) -> dict[str, np.ndarray]:
         out[f"{name}_keep_sky"] = np.where(surface[..., None], d, oidn)
         for s in sigmas:
             lp = name.replace("diffusion", "lowpass")
-            out[f"{lp}_s{s:g}"] = np.clip(oidn + gaussian_lowpass(d - oidn, s), 0, 1)
-            out[f"{lp}_s{s:g}_keep_sky"] = np.clip(oidn + masked_lowpass(d - oidn, surface, s), 0, 1)
+            out[f"{lp}_s{s:g}"] = np.clip(oidn + surface_lowpass(d - oidn, everywhere, s), 0, 1)
+            out[f"{lp}_s{s:g}_keep_sky"] = np.clip(oidn + surface_lowpass(d - oidn, surface, s), 0, 1)
 
-    model_only = DenoiseSettings(keep_sky=False)  # the model's own output everywhere
-    add("diffusion", denoise(raw["ldr"], alb, nrm, backend="diffusion", settings=model_only, **kw).frames)
-    out["diffusion_product"] = denoise(raw["ldr"], alb, nrm, backend="diffusion", **kw).frames  # the defaults
+    def model_only(start: str, tau: float) -> DenoiseSettings:  # the model's own output everywhere
+        return DenoiseSettings(sampler=SamplerSettings(sigma_tau=tau), diffusion_start=start,
+                               correction_sigma_px=0.0, keep_sky=False)
+
+    # the paper's forward pass: SDEdit of the raw render (the product's backend before forward_relit.json)
+    add("diffusion", denoise(raw["ldr"], alb, nrm, backend="diffusion", settings=model_only("input", 0.4), **kw).frames)
     for t in taus:
-        st = DenoiseSettings(sampler=SamplerSettings(sigma_tau=t), keep_sky=False)
         add(f"diffusion_on_oidn_tau{t:g}",
-            denoise(np.clip(oidn, 0, 1), alb, nrm, backend="diffusion", settings=st, **kw).frames)
+            denoise(raw["ldr"], alb, nrm, backend="diffusion", settings=model_only("oidn", t), **kw).frames)
+    out["diffusion_product"] = denoise(raw["ldr"], alb, nrm, backend="diffusion", **kw).frames  # the defaults
     return out
 
 

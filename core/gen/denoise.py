@@ -22,9 +22,10 @@ Backends
                    Sky pixels (zero normal) get the clipped colour as albedo guide (OIDN's advice
                    for primary rays that miss: the background's own colour), so the sky is kept.
     ``diffusion``  SDEdit with the ``forward_denoiser`` ONNX model (:mod:`core.gen.edm`,
-                   :mod:`core.gen.runtime`), sky pixels kept (``DenoiseSettings.keep_sky``):
-                   needs LDR frames, ``gbuffer`` (depth, roughness, metallic), ``cam_to_world``
-                   [T, 4, 4] and ``env`` [He, We, 3] (HDR map).
+                   :mod:`core.gen.runtime`) of OIDN's result, its change low-passed over the
+                   surface pixels and the sky kept (``DenoiseSettings``: ``diffusion_start``,
+                   ``correction_sigma_px``, ``keep_sky``): needs LDR frames, ``gbuffer`` (depth,
+                   roughness, metallic), ``cam_to_world`` [T, 4, 4] and ``env`` [He, We, 3] (HDR map).
 
 Failure policy: a missing, corrupt or contract-mismatching model raises
 :class:`core.errors.ModelLoadError` naming the file unless ``fallback`` ("none" or "oidn") is
@@ -34,6 +35,7 @@ never "fallen back" from: it raises :class:`NumericalError` / :class:`ShapeError
 
 from __future__ import annotations
 
+import math
 import threading
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -61,15 +63,29 @@ class DenoiseSettings:
     """OIDN quality: ``high``, ``balanced`` or ``fast``."""
     model_path: str | None = None
     """ONNX file of the ``forward_denoiser`` contract; None = :data:`DEFAULT_FORWARD_MODEL`."""
-    sampler: SamplerSettings = field(default_factory=SamplerSettings)
-    """SDEdit settings of the diffusion backend (sigma_tau, steps, solver, windows)."""
+    sampler: SamplerSettings = field(default_factory=lambda: SamplerSettings(sigma_tau=0.2))
+    """SDEdit settings of the diffusion backend (sigma_tau, steps, solver, windows). ``sigma_tau``
+    0.2: from OIDN's result with the other defaults, 0.4 scored 21.09 dB / SSIM 0.675 against
+    0.2's 21.52 / 0.681 on the development scenes' relit frames (``forward_relit.json``)."""
+    diffusion_start: str = "oidn"
+    """Diffusion backend: the frames SDEdit starts from. ``"oidn"``: OIDN's result of the input
+    (the model corrects a clean frame); ``"input"``: the input itself (the paper's forward pass
+    on the raw render). On relit reconstructions the model cannot remove 64-ray noise: from the
+    input, the relit frames were coloured grain (SSIM 0.41 against OIDN's 0.68)."""
+    correction_sigma_px: float = 8.0
+    """Diffusion backend: Gaussian sigma (pixels) of the low-pass applied to the model's change
+    to its start frame, over surface pixels only (normalised convolution); 0 = the model's output
+    as is. The model's corrections of tone and colour stay, its grain goes: from OIDN at
+    sigma_tau 0.2, 0 / 4 / 8 px scored 20.92 / 21.50 / 21.52 dB and SSIM 0.526 / 0.680 / 0.681
+    (OIDN alone 21.51 / 0.684; development scenes, ``benchmarks/bench_forward_relit.py``)."""
     keep_sky: bool = True
-    """Diffusion backend: sky pixels (zero normal, the rule OIDN's guide uses) keep the input
+    """Diffusion backend: sky pixels (zero normal, the rule OIDN's guide uses) keep the start
     frame's value. There the PBR pass shows the map itself, without noise, and the forward model
     only changed the lighting: on relit reconstructions it brightened the courtyard sky from 0.25
     to 0.48 (mean LDR; dev2, quick). Measured on the development scenes' relit frames
-    (``benchmarks/bench_forward_relit.py``, ``benchmarks/results/forward_relit.json``): off -> on
-    18.69 -> 19.38 dB / SSIM 0.383 -> 0.443 (default scene), 19.76 -> 20.75 / 0.441 -> 0.506 (dev2)."""
+    (``benchmarks/bench_forward_relit.py``, ``benchmarks/results/forward_relit.json``), SDEdit of
+    the input without low-pass, off -> on: 18.69 -> 19.38 dB / SSIM 0.383 -> 0.443 (default
+    scene), 19.76 -> 20.75 / 0.441 -> 0.506 (dev2)."""
 
     def __post_init__(self) -> None:
         if isinstance(self.threads, bool) or not isinstance(self.threads, int) or self.threads < 1:
@@ -78,6 +94,11 @@ class DenoiseSettings:
             raise ConfigError(f"oidn_quality: must be high, balanced or fast, got {self.oidn_quality!r}")
         if not isinstance(self.keep_sky, bool):
             raise ConfigError(f"keep_sky: must be a bool, got {self.keep_sky!r}")
+        if self.diffusion_start not in ("oidn", "input"):
+            raise ConfigError(f"diffusion_start: must be 'oidn' or 'input', got {self.diffusion_start!r}")
+        if (isinstance(self.correction_sigma_px, bool) or not isinstance(self.correction_sigma_px, (int, float))
+                or not math.isfinite(self.correction_sigma_px) or not 0 <= self.correction_sigma_px <= 64):
+            raise ConfigError(f"correction_sigma_px: must be a number in [0, 64], got {self.correction_sigma_px!r}")
 
 
 @dataclass(frozen=True)
@@ -197,8 +218,11 @@ def denoise_oidn(frames: np.ndarray, albedo: np.ndarray, normal: np.ndarray, *, 
 
 def denoise_diffusion(frames: np.ndarray, albedo: np.ndarray, normal: np.ndarray, gbuffer: dict,
                       cam_to_world: np.ndarray, env: np.ndarray, settings: DenoiseSettings) -> np.ndarray:
-    """SDEdit of an LDR clip with the ``forward_denoiser`` ONNX model. Raises ModelLoadError
-    (naming the file) when the model cannot be used."""
+    """SDEdit of the LDR clip ``frames`` (the start: OIDN's result or the input, see
+    :attr:`DenoiseSettings.diffusion_start`) with the ``forward_denoiser`` ONNX model; the model's
+    change to ``frames`` low-passed over the surface pixels and the sky pixels kept as in
+    ``frames`` (:class:`DenoiseSettings`). Raises ModelLoadError (naming the file) when the model
+    cannot be used."""
     import torch
 
     path = Path(settings.model_path) if settings.model_path else DEFAULT_FORWARD_MODEL
@@ -233,10 +257,34 @@ def denoise_diffusion(frames: np.ndarray, albedo: np.ndarray, normal: np.ndarray
     cond = {k: torch.from_numpy(np.stack([c[k] for c in cond_frames])) for k in cond_frames[0]}
     x = torch.from_numpy(ldr_to_data(frames).transpose(0, 3, 1, 2).copy())
     out = data_to_ldr(sdedit(OnnxDenoiser(sess), x, cond, settings.sampler).numpy().transpose(0, 2, 3, 1))
+    surface = np.linalg.norm(np.clip(normal, -1.0, 1.0), axis=-1) >= 0.5  # [T, H, W]; sky: zero normal
+    if settings.correction_sigma_px > 0:
+        out = frames + surface_lowpass(out - frames, surface, settings.correction_sigma_px)
     if settings.keep_sky:
-        sky = np.linalg.norm(np.clip(normal, -1.0, 1.0), axis=-1, keepdims=True) < 0.5
-        out = np.where(sky, frames, out).astype(np.float32)
+        out = np.where(surface[..., None], out, frames)
+    out = np.clip(out, 0.0, 1.0).astype(np.float32)
+    if not np.all(np.isfinite(out)):
+        raise NumericalError("diffusion output: non-finite values")
     return out
+
+
+def surface_lowpass(x: np.ndarray, surface: np.ndarray, sigma_px: float) -> np.ndarray:
+    """Gaussian low-pass (``sigma_px`` pixels, reflected at the borders) of ``x`` [T, H, W, C]
+    over each frame's pixels where ``surface`` [T, H, W] is true (normalised convolution: the
+    other pixels neither contribute nor receive); 0 elsewhere. float32."""
+    from scipy.ndimage import gaussian_filter
+
+    x = np.asarray(x, np.float32)
+    m = np.asarray(surface, bool)
+    if x.ndim != 4 or m.shape != x.shape[:3]:
+        raise ShapeError(f"x / surface: expected [T, H, W, C] / [T, H, W], got {x.shape} / {m.shape}")
+    if not (math.isfinite(sigma_px) and sigma_px > 0):
+        raise ConfigError(f"sigma_px: must be finite and > 0, got {sigma_px!r}")
+    w = m[..., None].astype(np.float32)
+    num = gaussian_filter(x * w, (0, sigma_px, sigma_px, 0), mode="reflect")
+    den = gaussian_filter(w, (0, sigma_px, sigma_px, 0), mode="reflect")
+    # den > 0 wherever w = 1 (the pixel's own weight); elsewhere the result is 0 by definition
+    return np.where(w > 0, num / np.maximum(den, 1e-6), 0.0).astype(np.float32)
 
 
 def denoise(frames, albedo, normal, backend: str = "none", fallback: str | None = None, *,
@@ -274,7 +322,9 @@ def denoise(frames, albedo, normal, backend: str = "none", fallback: str | None 
         if gbuffer is None or cam_to_world is None or env is None:
             raise ShapeError("backend 'diffusion' needs gbuffer (depth, roughness, metallic), "
                              "cam_to_world and env")
-        return denoise_diffusion(f, a, n, gbuffer, cam_to_world, env, s)
+        start = (denoise_oidn(f, a, n, threads=s.threads, quality=s.oidn_quality) if s.diffusion_start == "oidn"
+                 else f)
+        return denoise_diffusion(start, a, n, gbuffer, cam_to_world, env, s)
 
     try:
         return DenoiseResult(run(backend), backend, backend)

@@ -9,7 +9,7 @@ import pytest
 
 from core.errors import ConfigError, ModelLoadError, NumericalError, ShapeError
 from core.synth.gen_data import degrade_mc
-from core.gen.denoise import DenoiseSettings, denoise
+from core.gen.denoise import DenoiseSettings, denoise, surface_lowpass
 from core.gen.edm import SamplerSettings
 from core.tonemap import hdr_to_ldr
 
@@ -91,28 +91,69 @@ def test_diffusion_backend_runs_a_model(frame, small_models):
     assert np.abs(res.frames[0] - res.frames[1]).max() < 1e-5  # same input, shared noise: same output
 
 
-def test_diffusion_keeps_the_sky_and_only_the_sky(frame, small_models):
-    """Sky pixels (zero normal: the map itself, noise-free) keep the input; the surface pixels are
-    the model's, the same with and without ``keep_sky``."""
+def _diffusion(frame, small_models, **settings):
+    """The diffusion backend on the top-left 40 x 64 crop of a test frame (sky and surface)."""
     gt, c2w, env = frame
     ldr = hdr_to_ldr(gt["rgb"])[:40, :64]
     sub = lambda a: np.asarray(a)[:40, :64]  # noqa: E731
+    out = denoise(ldr[None], sub(gt["albedo"])[None], sub(gt["normal"])[None], backend="diffusion",
+                  gbuffer={k: sub(gt[k])[None] for k in ("depth", "roughness", "metallic")},
+                  cam_to_world=c2w[None], env=env,
+                  settings=DenoiseSettings(threads=1, model_path=str(small_models["fwd_a"][1]),
+                                           sampler=SamplerSettings(steps=2), **settings)).frames[0]
     sky = np.linalg.norm(sub(gt["normal"]), axis=-1) < 0.5
     assert 0 < sky.mean() < 1  # the crop holds sky and surface
+    return out, ldr.astype(np.float32), sky
 
-    def run(keep: bool) -> np.ndarray:
-        return denoise(ldr[None], sub(gt["albedo"])[None], sub(gt["normal"])[None], backend="diffusion",
-                       gbuffer={k: sub(gt[k])[None] for k in ("depth", "roughness", "metallic")},
-                       cam_to_world=c2w[None], env=env,
-                       settings=DenoiseSettings(threads=1, model_path=str(small_models["fwd_a"][1]),
-                                                sampler=SamplerSettings(steps=2), keep_sky=keep)).frames[0]
 
-    kept, model = run(True), run(False)
-    assert np.array_equal(kept[sky], ldr[sky].astype(np.float32))
+def test_diffusion_keeps_the_sky_and_only_the_sky(frame, small_models):
+    """Sky pixels (zero normal: the map itself, noise-free) keep the start frame; the surface
+    pixels are the model's, the same with and without ``keep_sky``."""
+    kw = dict(diffusion_start="input", correction_sigma_px=0.0)
+    kept, ldr, sky = _diffusion(frame, small_models, keep_sky=True, **kw)
+    model, _, _ = _diffusion(frame, small_models, keep_sky=False, **kw)
+    assert np.array_equal(kept[sky], ldr[sky])
     assert np.abs(model[sky] - ldr[sky]).max() > 1e-3  # the model alone changes the sky
     assert np.allclose(kept[~sky], model[~sky], atol=1e-6)
 
 
-def test_keep_sky_must_be_a_bool():
-    with pytest.raises(ConfigError, match="keep_sky"):
-        DenoiseSettings(keep_sky="yes")
+def test_diffusion_from_oidn_keeps_oidns_detail(frame, small_models):
+    """The default recipe: SDEdit of OIDN's result, the model's change low-passed. What it adds
+    to OIDN's frame is smooth (its own change is not), and the sky is OIDN's."""
+    gt = frame[0]
+    sub = lambda a: np.asarray(a)[:40, :64]  # noqa: E731
+    out, ldr, sky = _diffusion(frame, small_models)
+    oidn = denoise(ldr[None], sub(gt["albedo"])[None], sub(gt["normal"])[None], backend="oidn",
+                   settings=DenoiseSettings(threads=1)).frames[0]
+    raw, _, _ = _diffusion(frame, small_models, correction_sigma_px=0.0)
+
+    def detail(x):  # mean |x - its 3x3 box mean| over the surface's interior
+        from scipy.ndimage import uniform_filter
+
+        return float(np.abs(x - uniform_filter(x, (3, 3, 1)))[1:-1, 1:-1][~sky[1:-1, 1:-1]].mean())
+
+    assert np.array_equal(out[sky], oidn[sky])
+    assert detail(raw - oidn) > 1e-3  # the untrained model adds grain ...
+    assert detail(out - oidn) < 0.2 * detail(raw - oidn)  # ... which the low-pass removes
+
+
+def test_surface_lowpass_keeps_constants_and_ignores_the_sky():
+    x = np.full((1, 24, 24, 3), 0.2, np.float32)
+    x[:, :8] = 5.0  # the sky's value, far off
+    surface = np.ones((1, 24, 24), bool)
+    surface[:, :8] = False
+    y = surface_lowpass(x, surface, 4.0)
+    assert np.allclose(y[:, 8:], 0.2, atol=1e-5)  # no sky bleeding in
+    assert np.all(y[:, :8] == 0.0)
+    rng = np.random.default_rng(0)
+    noise = rng.normal(0.0, 0.1, (1, 64, 64, 3)).astype(np.float32)
+    assert surface_lowpass(noise, np.ones((1, 64, 64), bool), 4.0).std() < 0.2 * noise.std()
+    with pytest.raises(ShapeError, match="surface"):
+        surface_lowpass(x, surface[0], 4.0)
+
+
+@pytest.mark.parametrize("bad", [dict(keep_sky="yes"), dict(diffusion_start="raw"),
+                                 dict(correction_sigma_px=-1.0), dict(correction_sigma_px=float("nan"))])
+def test_diffusion_settings_are_validated(bad):
+    with pytest.raises(ConfigError, match=next(iter(bad))):
+        DenoiseSettings(**bad)
