@@ -92,7 +92,9 @@ def test_the_pbr_stage_records_its_choice_and_later_stages_load_it(tiny_scene, t
     own = run.load_scene(before="pbr")[0].occluders
     res = {h: v["residual"] for h, v in walls["hypotheses"].items()}
     assert walls["chosen"] == choose({h: (math.inf if r is None else r) for h, r in res.items()})
-    assert walls["rendered_with"] == (walls["chosen"] if PBRStageConfig().wall_shadows == "chosen" else "none")
+    from core.stages.pbr import wall_shadow_source
+
+    assert walls["rendered_with"] == wall_shadow_source(res, walls["chosen"], PBRStageConfig())[0]
     assert (out / "pbr" / OCCLUDERS_FILE).is_file() == (walls["rendered_with"] != "none")
     # a choice in the pbr directory replaces the graph's occluders for the joint stage and after,
     # not for the stages before it; the joint stage's own graph is not replaced
@@ -177,3 +179,23 @@ def test_wall_shadows_guess_keeps_the_graphs_occluders_for_rendering(tiny_scene,
         assert graph.occluders.num > own.num and (dest / OCCLUDERS_FILE).is_file()
     with pytest.raises(ConfigError, match="wall_shadows"):
         replace(cfg, wall_shadows="tallest")
+
+
+def test_wall_shadow_source_auto_trusts_the_chosen_walls_only_on_a_clear_gain():
+    from core.stages.pbr import PBRStageConfig, wall_shadow_source
+
+    res = {"none": 0.31863, "sky": 0.31137, "sky+right": 0.3058, "right": 0.11021}
+    auto = PBRStageConfig(wall_shadows="auto", wall_shadows_min_gain=0.02)
+    src, gain = wall_shadow_source(res, "sky+right", auto)  # the default scene: 4.2% below the guess
+    assert src == "sky+right" and math.isclose(gain, 0.31863 / 0.3058 - 1)
+    assert wall_shadow_source({"none": 0.11063, "right": 0.11021}, "right", auto)[0] == "none"  # dev3: 0.4%
+    assert wall_shadow_source(res, "none", auto) == ("none", 0.0)
+    assert wall_shadow_source({"none": None, "sky": 0.3}, "sky", auto) == ("none", None)  # no gain known
+    assert wall_shadow_source({"none": math.inf, "sky": 0.3}, "sky", auto) == ("none", None)
+    assert wall_shadow_source(res, "sky", replace(auto, wall_shadows="chosen"))[0] == "sky"
+    assert wall_shadow_source(res, "sky+right", replace(auto, wall_shadows="guess"))[0] == "none"
+    assert wall_shadow_source(res, "sky+right", replace(auto, wall_shadows_min_gain=0.05))[0] == "none"
+    for bad in (dict(wall_shadows="tallest"), dict(wall_shadows_min_gain=-0.1),
+                dict(wall_shadows_min_gain=math.nan)):
+        with pytest.raises(ConfigError, match=next(iter(bad))):
+            PBRStageConfig(**bad)
