@@ -44,7 +44,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from core.bundle import open_bundle  # noqa: E402
-from core.gen.denoise import DenoiseSettings, denoise, surface_lowpass  # noqa: E402
+from core.gen.denoise import DenoiseSettings, denoise, surface_lowpass, surface_mask  # noqa: E402
 from core.gen.edm import SamplerSettings  # noqa: E402
 from core.io.exr import read_exr  # noqa: E402
 from core.render.scenario import Scenario, render_scenario, views_from_frames  # noqa: E402
@@ -72,7 +72,7 @@ def raw_relit(graph, bundle, views, env: np.ndarray, s: EvalSettings) -> dict:
 def variants(raw: dict, env: np.ndarray, taus, sigmas) -> dict[str, np.ndarray]:
     g = raw["gbuffer"]
     alb, nrm = np.clip(g["albedo"], 0, 1), g["normal"]
-    surface = np.linalg.norm(nrm, axis=-1) >= 0.5  # [T, H, W]; the sky (the map seen directly): zero normal
+    surface = surface_mask(nrm)  # [T, H, W]; the sky (the map seen directly): zero normal
     everywhere = np.ones_like(surface)
     kw = dict(gbuffer={k: g[k] for k in ("depth", "roughness", "metallic")}, cam_to_world=raw["c2w"], env=env)
     out = {"none": raw["ldr"]}

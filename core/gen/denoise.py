@@ -137,6 +137,13 @@ def _as_clip(x, name: str, ref_shape=None) -> np.ndarray:
 # OIDN
 # ---------------------------------------------------------------------------------------------
 
+def surface_mask(normal: np.ndarray) -> np.ndarray:
+    """[..., H, W] bool from unit normals [..., H, W, 3]: True on surfaces, False on the sky
+    (the renderers write a zero normal there; partly covered edge pixels count as sky below
+    half a unit)."""
+    return np.linalg.norm(np.clip(normal, -1.0, 1.0), axis=-1) >= 0.5
+
+
 class _Oidn:
     """One OIDN CPU device (with an explicit thread count) and one RT filter, reused."""
 
@@ -197,7 +204,7 @@ def denoise_oidn(frames: np.ndarray, albedo: np.ndarray, normal: np.ndarray, *, 
     out = np.empty_like(frames)
     for t in range(frames.shape[0]):
         n = np.clip(normal[t], -1.0, 1.0)
-        sky = np.linalg.norm(n, axis=-1) < 0.5
+        sky = ~surface_mask(n)
         a = np.clip(albedo[t], 0.0, 1.0)
         if sky.any():
             bg = frames[t] / (1.0 + frames[t]) if hdr else frames[t]
@@ -218,15 +225,17 @@ def denoise_oidn(frames: np.ndarray, albedo: np.ndarray, normal: np.ndarray, *, 
 
 def denoise_diffusion(frames: np.ndarray, albedo: np.ndarray, normal: np.ndarray, gbuffer: dict,
                       cam_to_world: np.ndarray, env: np.ndarray, settings: DenoiseSettings) -> np.ndarray:
-    """SDEdit of the LDR clip ``frames`` (the start: OIDN's result or the input, see
-    :attr:`DenoiseSettings.diffusion_start`) with the ``forward_denoiser`` ONNX model; the model's
-    change to ``frames`` low-passed over the surface pixels and the sky pixels kept as in
-    ``frames`` (:class:`DenoiseSettings`). Raises ModelLoadError (naming the file) when the model
-    cannot be used."""
+    """SDEdit of the LDR clip ``frames`` with the ``forward_denoiser`` ONNX model, from its start
+    (OIDN's result or ``frames`` itself, :attr:`DenoiseSettings.diffusion_start`); the model's
+    change to the start low-passed over the surface pixels and the sky pixels kept as in the
+    start (:class:`DenoiseSettings`). Raises ModelLoadError (naming the file) when the model
+    cannot be used, before any denoising work."""
     import torch
 
     path = Path(settings.model_path) if settings.model_path else DEFAULT_FORWARD_MODEL
     sess = load_model(path, kind="forward_denoiser", threads=settings.threads)
+    if settings.diffusion_start == "oidn":
+        frames = denoise_oidn(frames, albedo, normal, threads=settings.threads, quality=settings.oidn_quality)
     t, h, w, _ = frames.shape
     poses = np.asarray(cam_to_world, np.float64)
     if poses.shape == (4, 4):
@@ -257,7 +266,7 @@ def denoise_diffusion(frames: np.ndarray, albedo: np.ndarray, normal: np.ndarray
     cond = {k: torch.from_numpy(np.stack([c[k] for c in cond_frames])) for k in cond_frames[0]}
     x = torch.from_numpy(ldr_to_data(frames).transpose(0, 3, 1, 2).copy())
     out = data_to_ldr(sdedit(OnnxDenoiser(sess), x, cond, settings.sampler).numpy().transpose(0, 2, 3, 1))
-    surface = np.linalg.norm(np.clip(normal, -1.0, 1.0), axis=-1) >= 0.5  # [T, H, W]; sky: zero normal
+    surface = surface_mask(normal)  # [T, H, W]
     if settings.correction_sigma_px > 0:
         out = frames + surface_lowpass(out - frames, surface, settings.correction_sigma_px)
     if settings.keep_sky:
@@ -322,9 +331,7 @@ def denoise(frames, albedo, normal, backend: str = "none", fallback: str | None 
         if gbuffer is None or cam_to_world is None or env is None:
             raise ShapeError("backend 'diffusion' needs gbuffer (depth, roughness, metallic), "
                              "cam_to_world and env")
-        start = (denoise_oidn(f, a, n, threads=s.threads, quality=s.oidn_quality) if s.diffusion_start == "oidn"
-                 else f)
-        return denoise_diffusion(start, a, n, gbuffer, cam_to_world, env, s)
+        return denoise_diffusion(f, a, n, gbuffer, cam_to_world, env, s)
 
     try:
         return DenoiseResult(run(backend), backend, backend)

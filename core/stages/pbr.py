@@ -156,8 +156,8 @@ class PBRStageConfig(StageShading):
     (:mod:`core.stages.wall_heights`): the prior's sun search runs once per hypothesis (each
     side's unseen walls at their neighbours' roof line or at the occluders' ``max_height_m``;
     the facades on the wall lines carved by the depth test or by sky pixels only). The
-    hypothesis with the smallest residual gives the prior's sun, and its occluders serve the
-    stage, the joint stage and every later render (``occluders.pt``). Needs ``prior_shadows`` and
+    hypothesis with the smallest residual gives the prior's sun; whether its occluders serve the
+    stage, the joint stage and every later render (``occluders.pt``) is ``wall_shadows``. Needs ``prior_shadows`` and
     the volume stage's occluder settings; costs seven more searches."""
     wall_min_gain: float = 0.002
     """A wall hypothesis wins only when its residual is lower than every hypothesis before it in

@@ -22,12 +22,15 @@ the depth test or by sky pixels only), every time over the same surface samples.
 whose best sun leaves the smallest shading residual wins, and its sun and sky are the prior's.
 Whose occluders cast the shadows afterwards is :attr:`core.stages.pbr.PBRStageConfig.wall_shadows`:
 
-* ``"guess"`` (the default): the volume stage's own occluders, for the rest of the pbr stage, the
-  joint stage and every later render. A winning hypothesis's walls stand at ``max_height_m``
-  where the true buildings may be half as tall, and their shadows darkened relit streets
-  (dev3: the courtyard road at 0.06-0.27x Mitsuba's light);
-* ``"chosen"``: the winner's occluders; the pbr stage writes them to ``<run>/pbr/occluders.pt``
-  (:func:`save_occluders`) and :meth:`core.stages.chain.RunDir.load_scene` applies them.
+* ``"auto"`` (the default): the winner's walls when its residual beats the guess's by at least
+  ``wall_shadows_min_gain``, else the guess's (below);
+* ``"guess"``: the volume stage's own occluders, for the rest of the pbr stage, the joint stage and
+  every later render. A winning hypothesis's walls stand at ``max_height_m`` where the true
+  buildings may be half as tall, and their shadows darkened relit streets (dev3: the courtyard
+  road at 0.06-0.27x Mitsuba's light);
+* ``"chosen"``: the winner's occluders. Whenever they cast the shadows, the pbr stage writes them
+  to ``<run>/pbr/occluders.pt`` (:func:`save_occluders`) and
+  :meth:`core.stages.chain.RunDir.load_scene` applies them.
 
 Not in the paper: its capture saw the facades whole.
 """
