@@ -178,9 +178,18 @@ def cook_torrance(n: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor, albedo: t
     m = metallic.clamp(0.0, 1.0)
     a = albedo.clamp(0.0, 1.0)
     diff = (1.0 - m) * a * INV_PI
+    spec, ohw = _microfacet(n, wi, wo, nwi, nwo, a, roughness, m, masking)
+    if diffuse == "burley":
+        diff = diff * burley_diffuse_factor(nwi, nwo, ohw, roughness)
+    f = diff + specular * spec
+    return torch.where(front, f, torch.zeros_like(f))
 
+
+def _microfacet(n, wi, wo, nwi, nwo, a, roughness, m, masking: str):
+    """The microfacet term ``D V F`` ``[..., 3]`` (not yet zeroed below the surface) and
+    ``wo.h`` ``[..., 1]``, for unit ``n``, ``wi``, ``wo``, their cosines and clamped albedo /
+    metallic."""
     alpha = ggx_alpha(roughness)
-    k = schlick_k(roughness)
     h = safe_normalize(wi + wo)
     d = ggx_d(n, h, alpha)
     ci = nwi.clamp(0.0, 1.0)
@@ -189,14 +198,24 @@ def cook_torrance(n: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor, albedo: t
         a2 = alpha * alpha
         vis = 1.0 / ((ci + torch.sqrt(a2 + (1.0 - a2) * ci * ci)) * (co + torch.sqrt(a2 + (1.0 - a2) * co * co)))
     else:
+        k = schlick_k(roughness)
         vis = 1.0 / (4.0 * (ci * (1.0 - k) + k) * (co * (1.0 - k) + k))  # G / (4 nwi nwo)
     ohw = dot(wo, h)
-    fr = schlick_fresnel(f0(a, m), ohw)
-    spec = d * vis * fr
-    if diffuse == "burley":
-        diff = diff * burley_diffuse_factor(nwi, nwo, ohw, roughness)
-    f = diff + specular * spec
-    return torch.where(front, f, torch.zeros_like(f))
+    return d * vis * schlick_fresnel(f0(a, m), ohw), ohw
+
+
+def specular_lobe(n: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor, albedo: torch.Tensor,
+                  roughness: torch.Tensor, metallic: torch.Tensor, masking: str = "schlick") -> torch.Tensor:
+    """The microfacet (specular) part of :func:`cook_torrance` alone, ``[..., 3]`` in 1/sr (same
+    arguments; 0 unless ``n.wi > 0`` and ``n.wo > 0``)."""
+    check_brdf_model("lambert", masking)
+    n = safe_normalize(n)
+    wi = safe_normalize(wi)
+    wo = safe_normalize(wo)
+    nwi = dot(n, wi)
+    nwo = dot(n, wo)
+    spec, _ = _microfacet(n, wi, wo, nwi, nwo, albedo.clamp(0.0, 1.0), roughness, metallic.clamp(0.0, 1.0), masking)
+    return torch.where((nwi > 0) & (nwo > 0), spec, torch.zeros_like(spec))
 
 
 # ---------------------------------------------------------------------------------------------

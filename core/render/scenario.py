@@ -37,7 +37,8 @@ from core.io.envmap_file import read_envmap
 from core.io.hdri import hdri_names
 from core.pbr.envmap import EnvironmentMap
 from core.pbr.lights import PointLight, SpotLight
-from core.pbr.render import PRODUCT_DIFFUSE, PRODUCT_MASKING, PRODUCT_OPAQUE_ABOVE, ClipHook, PBRSettings
+from core.pbr.render import (PRODUCT_DIFFUSE, PRODUCT_INDIRECT_SPECULAR_RAYS, PRODUCT_MASKING, PRODUCT_OPAQUE_ABOVE,
+                             ClipHook, PBRSettings)
 from core.pbr.visibility import TraceSettings
 from core.relight import ObjectEdit, View
 from core.render.exposure import AutoExposure
@@ -183,6 +184,10 @@ class Scenario:
     indirect_bounces: int = 2
     """Indirect light of the PBR pass: the approximate diffuse bounces
     (:attr:`core.pbr.render.PBRSettings.indirect_bounces`; 0 = direct light only, the paper)."""
+    indirect_specular_rays: int = PRODUCT_INDIRECT_SPECULAR_RAYS
+    """GGX shadow rays per pixel of the specular bounce
+    (:attr:`core.pbr.render.PBRSettings.indirect_specular_rays`; 0 = the bounce lights the
+    diffuse lobe only)."""
     diffuse: str = PRODUCT_DIFFUSE
     """The BRDF's diffuse lobe (:attr:`core.pbr.render.PBRSettings.diffuse`): Burley's, whose
     base colour the recovered albedo is. Chosen on the default scene's quick reconstruction (the
@@ -623,6 +628,7 @@ def render_scenario(graph, scenario: Scenario, out_dir: str | Path, *,
                                                t_min_objects=scenario.object_shadow_t_min_m),
                            reuse_visibility=len(scenario.views) > 1, adaptive=scenario.adaptive_rays,
                            indirect_bounces=scenario.indirect_bounces, diffuse=scenario.diffuse,
+                           indirect_specular_rays=scenario.indirect_specular_rays,
                            masking=scenario.masking, opaque_above=scenario.opaque_above,
                            object_solids=scenario.object_solids)
     with ClipHook(reuse_across_clips=scenario.reuse_visibility_across_requests) as hook:

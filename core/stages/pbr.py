@@ -51,7 +51,8 @@ from core.lighting.sky_evidence import SkyEvidence, SkyEvidenceSettings, observe
 from core.numerics import LOG_RADIANCE_FLOOR
 from core.pbr.brdf import DIFFUSE_MODELS, MASKING_MODELS
 from core.pbr.envmap import EnvironmentMap, resample
-from core.pbr.render import PRODUCT_DIFFUSE, PRODUCT_MASKING, PRODUCT_OPAQUE_ABOVE, PBRSettings, render_pbr
+from core.pbr.render import (PRODUCT_DIFFUSE, PRODUCT_INDIRECT_SPECULAR_RAYS, PRODUCT_MASKING, PRODUCT_OPAQUE_ABOVE,
+                             PBRSettings, render_pbr)
 from core.pbr.visibility import GaussianTracer, TraceSettings
 from core.raster import RasterSettings, rasterize_gaussians
 from core.stages.early_stop import stalled
@@ -74,6 +75,9 @@ class StageShading:
     indirect_bounces: int = 2
     """Approximate diffuse bounces of the PBR pass (:attr:`core.pbr.render.PBRSettings.indirect_bounces`;
     0 = direct light only, the paper)."""
+    indirect_specular_rays: int = PRODUCT_INDIRECT_SPECULAR_RAYS
+    """GGX shadow rays per pixel of the specular bounce of the stage's PBR pass
+    (:attr:`core.pbr.render.PBRSettings.indirect_specular_rays`; as a relight renders it)."""
     diffuse: str = PRODUCT_DIFFUSE
     """The BRDF's diffuse lobe of the stage's PBR pass (:attr:`core.pbr.render.PBRSettings.diffuse`;
     the one a relight renders with, :attr:`core.render.scenario.Scenario.diffuse`)."""
@@ -90,6 +94,9 @@ class StageShading:
         return [n for n, ok in (("shadow_t_min_m", 0 <= self.shadow_t_min_m <= 100),
                                 ("normal_offset_m", 0 <= self.normal_offset_m <= 10),
                                 ("indirect_bounces", isinstance(b, int) and not isinstance(b, bool) and 0 <= b <= 16),
+                                ("indirect_specular_rays", isinstance(self.indirect_specular_rays, int)
+                                 and not isinstance(self.indirect_specular_rays, bool)
+                                 and 0 <= self.indirect_specular_rays <= 1024),
                                 ("diffuse", self.diffuse in DIFFUSE_MODELS),
                                 ("masking", self.masking in MASKING_MODELS),
                                 ("opaque_above", 0 < self.opaque_above <= 1))
@@ -102,7 +109,7 @@ class StageShading:
     def pbr_settings(self, **kw) -> PBRSettings:
         """The stage's (differentiable, torch) PBR pass; ``kw``: the other :class:`PBRSettings` fields."""
         return PBRSettings(backend="torch", normal_offset=self.normal_offset_m, indirect_bounces=self.indirect_bounces,
-                           diffuse=self.diffuse, masking=self.masking, opaque_above=self.opaque_above, **kw)
+                           indirect_specular_rays=self.indirect_specular_rays, diffuse=self.diffuse, masking=self.masking, opaque_above=self.opaque_above, **kw)
 
 
 @dataclass(frozen=True)

@@ -39,7 +39,7 @@ from core.lighting.prior import brightest_direction, sun_direction_error_deg
 from core.metrics import angular_error_deg, psnr, si_psnr, ssim
 from core.numerics import OPACITY_EPS
 from core.pbr.envmap import resample
-from core.pbr.render import PRODUCT_DIFFUSE, PRODUCT_MASKING, PRODUCT_OPAQUE_ABOVE
+from core.pbr.render import PRODUCT_DIFFUSE, PRODUCT_INDIRECT_SPECULAR_RAYS, PRODUCT_MASKING, PRODUCT_OPAQUE_ABOVE
 from core.raster import RasterSettings, rasterize_gaussians
 from core.render.scenario import Scenario, render_scenario, views_from_frames
 from core.stages.chain import RunDir
@@ -68,6 +68,9 @@ class EvalSettings:
     indirect_bounces: int = 2
     """Indirect light of the PBR renders: the approximate diffuse bounces
     (:attr:`core.pbr.render.PBRSettings.indirect_bounces`; 0 = direct light only, the paper)."""
+    indirect_specular_rays: int = PRODUCT_INDIRECT_SPECULAR_RAYS
+    """GGX shadow rays per pixel of the specular bounce
+    (:attr:`core.render.scenario.Scenario.indirect_specular_rays`)."""
     diffuse: str = PRODUCT_DIFFUSE
     """The BRDF's diffuse lobe of the PBR renders (:attr:`core.render.scenario.Scenario.diffuse`)."""
     masking: str = PRODUCT_MASKING
@@ -181,7 +184,8 @@ def evaluate_run(run_dir: str | Path, bundle=None, settings: EvalSettings | None
                       base_exposure=ex, gamma=gamma, rays_per_pixel=s.rays_per_pixel, denoiser=s.denoiser,
                       denoiser_fallback=None, normal_offset_m=s.normal_offset_m,
                       shadow_t_min_m=s.shadow_t_min_m, object_shadow_t_min_m=s.object_shadow_t_min_m,
-                      indirect_bounces=s.indirect_bounces, diffuse=s.diffuse, masking=s.masking,
+                      indirect_bounces=s.indirect_bounces, indirect_specular_rays=s.indirect_specular_rays,
+                      diffuse=s.diffuse, masking=s.masking,
                       opaque_above=s.opaque_above, object_solids=s.object_solids,
                       outputs=("png",))
         with tempfile.TemporaryDirectory(prefix="brdf-eval-") as tmp:

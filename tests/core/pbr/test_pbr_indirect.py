@@ -149,3 +149,76 @@ def test_the_pass_adds_light_under_a_roof_only():
     off_obj = render_pbr(gb, cam, env, settings=base, tracers=(obj,), generator=torch.Generator().manual_seed(0))
     assert float((off.hdr - off_obj.hdr).abs().max()) < 0.05 * float(off.hdr.mean())  # blocks the light alike
     np.testing.assert_allclose(on_obj.hdr.numpy(), off_obj.hdr.numpy(), atol=1e-9)
+
+
+# --- the specular bounce (indirect_specular_rays) ---------------------------------------------
+
+def _view(p, theta_deg):
+    t = math.radians(theta_deg)
+    return torch.tensor([[math.sin(t), 0.0, math.cos(t)]], dtype=torch.float64).expand(p, 3).clone()
+
+
+def _directional_albedo(albedo, roughness, metallic, theta_deg, n_theta=400, n_phi=400):
+    """Reference twin: the specular lobe's directional albedo int f_s (n.wi) dwi by midpoint
+    quadrature over the hemisphere (no sampling), channel 0."""
+    from core.pbr.brdf import specular_lobe
+    th = (torch.arange(n_theta, dtype=torch.float64) + 0.5) * (math.pi / 2) / n_theta
+    ph = (torch.arange(n_phi, dtype=torch.float64) + 0.5) * 2 * math.pi / n_phi
+    tt, pp = torch.meshgrid(th, ph, indexing="ij")
+    wi = torch.stack([tt.sin() * pp.cos(), tt.sin() * pp.sin(), tt.cos()], -1).reshape(-1, 3)
+    k = wi.shape[0]
+    f = specular_lobe(UP.expand(k, 3), wi, _view(k, theta_deg), torch.full((k, 3), albedo, dtype=torch.float64),
+                      torch.full((k, 1), roughness, dtype=torch.float64),
+                      torch.full((k, 1), metallic, dtype=torch.float64), "smith")
+    dw = (math.pi / 2 / n_theta) * (2 * math.pi / n_phi) * tt.sin().reshape(-1)
+    return float((f[:, 0] * wi[:, 2] * dw).sum())
+
+
+@pytest.mark.parametrize("albedo,roughness,metallic,theta", [(1.0, 0.3, 1.0, 30.0), (0.8, 0.6, 1.0, 70.0),
+                                                             (0.05, 0.35, 0.0, 60.0)])
+def test_specular_bounce_of_a_closed_hemisphere_is_the_lobe_directional_albedo(albedo, roughness, metallic, theta):
+    # every direction blocked, one bounce, L_b = 1: the specular part is the lobe's directional
+    # albedo (GGX samples against a quadrature of the same lobe), the diffuse part rho
+    p = 3000
+    pts, n, a, m, _ = _inputs(p=p, albedo=albedo, metallic=metallic)
+    d = torch.ones(p, 3, dtype=torch.float64)
+    r = torch.full((p, 1), roughness, dtype=torch.float64)
+    g = torch.Generator().manual_seed(3)
+    out = indirect_light(pts, n, a, m, d, [_blocked], bounces=1, wo=_view(p, theta), roughness=r,
+                         specular_rays=8, generator=g)
+    spec = float(out[:, 0].mean()) - albedo * (1 - metallic)
+    ref = _directional_albedo(albedo, roughness, metallic, theta)
+    assert abs(spec - ref) < 0.01 * max(ref, 0.05), (spec, ref)
+    assert spec <= 1.0 + 1e-9  # energy: the lobe reflects at most what arrives
+
+
+def test_specular_bounce_needs_blocked_directions_and_its_inputs():
+    p = 50
+    pts, n, a, m, d = _inputs(p=p, albedo=0.9, metallic=1.0)
+    r = torch.full((p, 1), 0.2, dtype=torch.float64)
+    wo = _view(p, 40.0)
+    assert torch.equal(indirect_light(pts, n, a, m, d, [_open], wo=wo, roughness=r, specular_rays=4),
+                       torch.zeros(p, 3, dtype=torch.float64))
+    # off (0 rays): a metal gets nothing, as before
+    assert torch.equal(indirect_light(pts, n, a, m, d, [_blocked], wo=wo, roughness=r, specular_rays=0),
+                       torch.zeros(p, 3, dtype=torch.float64))
+    assert bool((indirect_light(pts, n, a, m, d, [_blocked], wo=wo, roughness=r, specular_rays=4) > 0).all())
+    with pytest.raises(Exception, match="wo, roughness"):
+        indirect_light(pts, n, a, m, d, [_blocked], specular_rays=4)
+    with pytest.raises(ConfigError, match="specular_rays"):
+        indirect_light(pts, n, a, m, d, [_blocked], wo=wo, roughness=r, specular_rays=-1)
+    with pytest.raises(ConfigError, match="indirect_specular_rays"):
+        PBRSettings(indirect_specular_rays=-2)
+
+
+def test_specular_bounce_gradients_reach_albedo_metallic_and_roughness():
+    p = 16
+    pts, n, a, m, d = _inputs(p=p, albedo=0.6, metallic=0.5)
+    r = torch.full((p, 1), 0.3, dtype=torch.float64)
+    for t in (a, m, r):
+        t.requires_grad_(True)
+    out = indirect_light(pts, n, a, m, d, [_blocked], wo=_view(p, 50.0), roughness=r, specular_rays=4,
+                         generator=torch.Generator().manual_seed(0))
+    out.sum().backward()
+    for name, t in (("albedo", a), ("metallic", m), ("roughness", r)):
+        assert t.grad is not None and bool(torch.isfinite(t.grad).all()) and float(t.grad.abs().sum()) > 0, name

@@ -64,13 +64,14 @@ def test_zero_steps_return_the_prior(tiny_scene, reconstruction, tmp_path):
 
 @pytest.mark.parametrize("field,value", [("iterations", -1), ("pixels", 0), ("lr", 0.0), ("env_height", 4),
                                          ("lambda_e_end", -0.1), ("shadow_t_min_m", -0.1), ("normal_offset_m", 11.0),
-                                         ("indirect_bounces", 17), ("indirect_bounces", 1.5), ("wall_min_gain", -0.01)])
+                                         ("indirect_bounces", 17), ("indirect_bounces", 1.5), ("wall_min_gain", -0.01),
+                                         ("indirect_specular_rays", -1), ("indirect_specular_rays", True)])
 def test_bad_settings_name_the_field(field, value):
     with pytest.raises(ConfigError, match=field):
         PBRStageConfig(**{field: value})
     from core.stages.joint import JointSettings
 
-    if field in ("shadow_t_min_m", "normal_offset_m", "indirect_bounces"):
+    if field in ("shadow_t_min_m", "normal_offset_m", "indirect_bounces", "indirect_specular_rays"):
         with pytest.raises(ConfigError, match=field):
             JointSettings(**{field: value})
 
@@ -116,6 +117,8 @@ def test_the_stages_trace_shadows_as_a_relight_does():
     for cfg in (PBRStageConfig(), JointSettings()):
         assert cfg.shadow_t_min_m == sc["shadow_t_min_m"] and cfg.normal_offset_m == sc["normal_offset_m"]
         assert cfg.indirect_bounces == sc["indirect_bounces"] > 0
+        assert cfg.indirect_specular_rays == sc["indirect_specular_rays"]
+        assert cfg.pbr_settings().indirect_specular_rays == cfg.indirect_specular_rays
 
 
 def test_wrong_settings_type(tiny_scene, reconstruction, tmp_path):
