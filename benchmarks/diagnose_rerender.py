@@ -171,11 +171,15 @@ def _stage_frames(run_dir: str, stage: str, occluders: str, diffuse: str | None 
 
 
 def gains(run_dir: str, stage: str, occluders: str, albedo: str, bounces: int | None, every: int, pixels: int,
-          diffuse: str | None = None) -> dict:
+          diffuse: str | None = None, map_name: str = "true") -> dict:
     b, _g, cfg, frames, train = _stage_frames(run_dir, stage, occluders, diffuse)
     if bounces is not None:
         cfg = dataclasses.replace(cfg, indirect_bounces=bounces)
-    true_map = _true_map(b)
+    if map_name == "true":
+        true_map = _true_map(b)
+    else:  # one of the run's own maps (e.g. pbr/envmap_prior.exr), split at its own brightest direction
+        true_map = resample(torch.from_numpy(np.asarray(read_envmap(Path(run_dir) / map_name), np.float64)),
+                            MAP_H, 2 * MAP_H).numpy()
     sun, _ = _sun_mask(true_map)
     parts = {"sun": np.where(sun[..., None], true_map, 1e-6), "sky": np.where(sun[..., None], 1e-6, true_map)}
     envs = {k: EnvironmentMap(torch.from_numpy(v)) for k, v in parts.items()}
@@ -205,8 +209,9 @@ def gains(run_dir: str, stage: str, occluders: str, albedo: str, bounces: int | 
     hs, hk, t = np.concatenate(hdr["sun"]), np.concatenate(hdr["sky"]), np.concatenate(tgt)
     nrm, alb, rgh = np.concatenate(nrm), np.concatenate(alb), np.concatenate(rgh)
     best = (np.inf, 1.0, 1.0)
-    for gs in np.arange(0.2, 2.001, 0.05):
-        for gk in np.arange(0.4, 2.001, 0.05):
+    grid = np.exp(np.linspace(np.log(0.1), np.log(10.0), 61)) if map_name != "true" else None
+    for gs in (grid if grid is not None else np.arange(0.2, 2.001, 0.05)):
+        for gk in (grid if grid is not None else np.arange(0.4, 2.001, 0.05)):
             p = np.clip((gs * hs + gk * hk) * m.ldr_exposure, 0, 1) ** (1 / m.ldr_gamma)
             loss = float(np.abs(p - t).mean())
             if loss < best[0]:
@@ -215,7 +220,7 @@ def gains(run_dir: str, stage: str, occluders: str, albedo: str, bounces: int | 
     lin_t = np.clip(t, 0, 0.999) ** m.ldr_gamma / m.ldr_exposure
     lin_p = hs + hk
     shade = lin_t.mean(-1) / np.maximum(alb.mean(-1), 1e-3)
-    out = {"stage": stage, "occluders": occluders, "albedo": albedo, "indirect_bounces": cfg.indirect_bounces,
+    out = {"map": map_name, "stage": stage, "occluders": occluders, "albedo": albedo, "indirect_bounces": cfg.indirect_bounces,
            "diffuse": cfg.diffuse,
            "samples": int(len(t)), "l1_at_true_map": float(np.abs(p1 - t).mean()), "l1_best": best[0],
            "gain_sun": round(best[1], 2), "gain_sky": round(best[2], 2), "capture_over_render_by_shading_quintile": {}}
@@ -418,6 +423,8 @@ def main() -> int:
     ap.add_argument("--every", type=int, default=3, help="every this many of the stage's training frames")
     ap.add_argument("--pixels", type=int, default=3000, help="pixels per frame (gains)")
     ap.add_argument("--stages", default="volume2,joint", help="graphs compared (albedo)")
+    ap.add_argument("--map", default="true", help="gains: the map split into sun and sky: 'true' (the bundle's) or a "
+                    "map of the run, e.g. pbr/envmap_prior.exr (gains searched 0.1-10)")
     ap.add_argument("--sigma", type=float, default=3.0, help="low-pass of the regions split, pixels")
     a = ap.parse_args()
     global ORACLE_FINER
@@ -425,7 +432,7 @@ def main() -> int:
     if a.what == "regions":
         res = regions(a.run, a.sigma)
     elif a.what == "gains":
-        res = gains(a.run, a.stage, a.occluders, a.albedo, a.bounces, a.every, a.pixels, a.diffuse)
+        res = gains(a.run, a.stage, a.occluders, a.albedo, a.bounces, a.every, a.pixels, a.diffuse, a.map)
     elif a.what == "visibility":
         res = visibility(a.run, a.stage, a.occluders, a.every)
     elif a.what == "bounce":

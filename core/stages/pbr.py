@@ -47,6 +47,7 @@ from core.io.atomic import atomic_output
 from core.io.envmap_file import write_envmap
 from core.io.images import write_png
 from core.lighting.prior import LightingSettings, estimate_lighting, numpy_visibility
+from core.lighting.prior_gains import PriorGainSettings, search_gains, split_map
 from core.lighting.sky_evidence import SkyEvidence, SkyEvidenceSettings, observed_sky
 from core.numerics import LOG_RADIANCE_FLOOR
 from core.pbr.brdf import DIFFUSE_MODELS, MASKING_MODELS
@@ -244,6 +245,9 @@ class PBRStageConfig(StageShading):
     clipped; the fit (and the joint stage after it) moves the rest. Needs the dome (the chain's
     runs have it); its coverage is in the summary."""
 
+    prior_gains: PriorGainSettings = field(default_factory=PriorGainSettings)
+    """The prior's sun and unseen sky rescaled by two gains fitted to the capture through this
+    stage's PBR pass before its per-texel fit (:mod:`core.lighting.prior_gains`)."""
     sun_floor: float = 0.0
     """The sun of the lighting prior as a floor: texels within ``sun_floor_deg`` of the prior's
     sun direction may not fall below ``sun_floor`` times the prior's radiance there, in this stage
@@ -267,6 +271,8 @@ class PBRStageConfig(StageShading):
                               f"{self.sun_floor_deg}")
         if not isinstance(self.sky_evidence, SkyEvidenceSettings):
             raise ConfigError(f"sky_evidence: expected SkyEvidenceSettings, got {type(self.sky_evidence).__name__}")
+        if not isinstance(self.prior_gains, PriorGainSettings):
+            raise ConfigError(f"prior_gains: expected PriorGainSettings, got {type(self.prior_gains).__name__}")
         if self.wall_shadows not in ("auto", "chosen", "guess"):
             raise ConfigError(f"wall_shadows: must be 'auto', 'chosen' or 'guess', got {self.wall_shadows!r}")
         if not isinstance(self.skip_sun_search, bool):
@@ -482,6 +488,47 @@ def _sun_floor(hold: SkyEvidence | None, prior_full: np.ndarray, sun_dir, h: int
                   "radius_deg": cfg.sun_floor_deg, "peak_floor": float(torch.exp(new_floor).max())}
 
 
+def _prior_gains(frames: list[_FrameData], prior_full: np.ndarray, est, hold: SkyEvidence | None, bundle,
+                 cfg: PBRStageConfig, search_sun: bool) -> tuple[np.ndarray, dict]:
+    """The prior with its sun and unseen sky rescaled to the capture (:mod:`core.lighting.prior_gains`):
+    the three parts rendered once each by the stage's PBR pass on ``prior_gains.pixels`` random
+    non-sky pixels per frame, the two gains grid-searched. Returns the map and the summary entry."""
+    gs = cfg.prior_gains
+    if not gs.enabled:
+        return prior_full, {"enabled": False, "why": "prior_gains.enabled is false"}
+    if not search_sun or est.sun_source == "none":
+        return prior_full, {"enabled": False, "why": "no sun in the prior"}
+    t0 = time.perf_counter()
+    h = prior_full.shape[0]
+    w_held = hold.at(h).weight.double().numpy() if hold is not None else None
+    parts = split_map(prior_full, est.sun_dir, w_held, gs.sun_cap_deg)
+    m = bundle.manifest
+    ps = cfg.pbr_settings(rays_per_pixel=cfg.rays_per_pixel, exposure=1.0, gamma=1.0, threads=cfg.threads,
+                          seed=cfg.seed)
+    envs = {k: EnvironmentMap(torch.from_numpy(np.maximum(v, LOG_RADIANCE_FLOOR))) for k, v in parts.items()}
+    gen = torch.Generator().manual_seed(cfg.seed + 7)  # its own stream: the fit's stays as before
+    renders: dict[str, list] = {k: [] for k in parts}
+    targets = []
+    with torch.no_grad():
+        for f in frames:
+            n = f.nonsky.numel()
+            if not n:
+                continue
+            idx = f.nonsky[torch.randperm(n, generator=gen)[:min(gs.pixels, n)]]
+            for k, e in envs.items():
+                r = render_pbr(f.gbuf, f.camera, e, settings=ps, tracers=f.tracers, pixels=idx,
+                               generator=torch.Generator().manual_seed(cfg.seed + 11))
+                renders[k].append(r.hdr.detach().double().numpy().reshape(-1, 3))
+            targets.append(f.target[idx].double().numpy())
+    if not targets:
+        return prior_full, {"enabled": False, "why": "no non-sky pixel"}
+    res = search_gains({k: np.concatenate(v) for k, v in renders.items()}, np.concatenate(targets),
+                       m.ldr_exposure, m.ldr_gamma, gs)
+    out = (res["gain_sun"] * parts["sun"] + res["gain_sky"] * parts["sky"] + parts["held"]).astype(np.float32)
+    return out, {"enabled": True, **{k: (round(v, 5) if isinstance(v, float) else v) for k, v in res.items()},
+                 "seconds": round(time.perf_counter() - t0, 2)}
+
+
 def _psnr(a: torch.Tensor, b: torch.Tensor) -> float:
     mse = float(((a - b) ** 2).mean())
     return 10.0 * math.log10(1.0 / max(mse, 1e-12))
@@ -573,6 +620,7 @@ def fit_lighting(graph, bundle, out_dir: str | Path, cfg: PBRStageConfig | None 
             # the prior E_g holds the observed sky too (what the joint stage's log prior pulls to)
             log_p = torch.log(resample(torch.from_numpy(prior_full).double(), h, 2 * h).clamp_min(LOG_RADIANCE_FLOOR))
             prior_full = resample(torch.exp(ev.hold(log_p)), 512, 1024).numpy().astype(np.float32)
+    prior_full, gains = _prior_gains(frames, prior_full, est, hold, bundle, cfg, search_sun)
     sun_floor_stats = {"enabled": False}
     if cfg.sun_floor > 0 and est.sun_source != "none":
         hold, sun_floor_stats = _sun_floor(hold, prior_full, est.sun_dir, h, cfg)
@@ -695,7 +743,7 @@ def fit_lighting(graph, bundle, out_dir: str | Path, cfg: PBRStageConfig | None 
                "capture_sky": {"sunless": sunless, **sky_stats}, "skips_fired": fired,
                "photometric_psnr_prior": psnr_before, "photometric_psnr_fitted": psnr_after,
                "sun_source": est.sun_source, "sun_dir_prior": [float(x) for x in est.sun_dir],
-               "sky_evidence": sky_stats_obs, "sun_floor": sun_floor_stats, "wall_heights": walls,
+               "sky_evidence": sky_stats_obs, "prior_gains": gains, "sun_floor": sun_floor_stats, "wall_heights": walls,
                "history": history, "resumed_from_iteration": start,
                "seconds": {"gbuffers": t_frames, "prior": t_prior, "total": time.perf_counter() - t0}}
     sep = np.full((4, 1024, 3), 255, np.uint8)

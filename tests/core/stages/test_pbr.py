@@ -12,6 +12,7 @@ import torch
 from core.bundle import open_bundle
 from core.errors import ConfigError
 from core.io.envmap_file import read_envmap
+from core.lighting.prior_gains import PriorGainSettings
 from core.lighting.sky_evidence import SkyEvidence
 from core.scene_graph import SceneGraph
 from core.stages.chain import profile_settings
@@ -36,7 +37,9 @@ def reconstruction(volume_dir):
 
 
 def test_fit_improves_the_photometric_match_and_writes_outputs(tiny_scene, reconstruction, tmp_path):
-    cfg = replace(profile_settings("tiny", "pbr"), iterations=40, lr=0.05)
+    # the per-texel fit itself, from the prior as made (its gains, which take most of what the
+    # fit would find on this scene, are tested below)
+    cfg = replace(profile_settings("tiny", "pbr"), iterations=40, lr=0.05, prior_gains=PriorGainSettings(enabled=False))
     seen = []
     s = fit_lighting(reconstruction, open_bundle(tiny_scene), tmp_path, cfg,
                      on_progress=lambda it, n, rec: seen.append((it, n, rec["loss"])))
@@ -52,6 +55,27 @@ def test_fit_improves_the_photometric_match_and_writes_outputs(tiny_scene, recon
     written = json.loads((tmp_path / "summary.json").read_text())
     assert "ground_truth" not in written  # the product path never reads the bundle's ground truth
     assert written["photometric_psnr_fitted"] == pytest.approx(s["photometric_psnr_fitted"])
+
+
+def test_the_prior_gains_fit_the_capture_and_are_recorded(tiny_scene, reconstruction, tmp_path):
+    """The prior's sun / sky gains (core.lighting.prior_gains) are searched before the fit; the
+    rescaled prior matches the training frames no worse than the prior as made."""
+    base = replace(profile_settings("tiny", "pbr"), iterations=0)
+    on = fit_lighting(reconstruction, open_bundle(tiny_scene), tmp_path / "on", base)
+    off = fit_lighting(reconstruction, open_bundle(tiny_scene), tmp_path / "off",
+                       replace(base, prior_gains=PriorGainSettings(enabled=False)))
+    g = on["prior_gains"]
+    assert off["prior_gains"]["enabled"] is False
+    if g["enabled"]:
+        assert g["l1_best"] <= g["l1_prior"] and g["gain_sun"] > 0 and g["gain_sky"] > 0
+        if g["applied"]:
+            assert on["photometric_psnr_prior"] > off["photometric_psnr_prior"] - 0.05, (on, off)
+            assert not np.allclose(read_envmap(tmp_path / "on" / "envmap_prior.exr"),
+                                   read_envmap(tmp_path / "off" / "envmap_prior.exr"))
+    else:
+        assert g["why"] == "no sun in the prior"
+    with pytest.raises(ConfigError, match="prior_gains"):
+        replace(base, prior_gains={"enabled": True})
 
 
 def test_zero_steps_return_the_prior(tiny_scene, reconstruction, tmp_path):
