@@ -17,7 +17,10 @@ learned lighting prior does not exist yet.
 
 The sky the training frames saw is held fixed in ``E`` and ``E_g``
 (:mod:`core.lighting.sky_evidence`: the reconstruction's sky dome where the frames' sky pixels
-point, unclipped): the fit moves only what the frames did not see (not in the paper).
+point, unclipped): the fit moves only what the frames did not see (not in the paper). Before the
+fit, ``E_g``'s sun and unseen sky are rescaled by two gains fitted to the training frames
+(:mod:`core.lighting.prior_gains`, ``prior_gains``: a global move the per-texel steps do not make;
+not in the paper).
 
 Outputs (``out_dir``): ``envmap.exr`` (the fitted ``E``, float32, 2:1 equirect in the project's
 convention), ``envmap_prior.exr`` (``E_g``), ``preview.png`` (both tone-mapped), ``summary.json``
