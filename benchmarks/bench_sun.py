@@ -39,7 +39,8 @@ from core.camera import Camera  # noqa: E402
 from core.lighting.prior import (LightingSettings, brightest_direction, estimate_lighting,  # noqa: E402
                                  numpy_visibility, sun_direction_error_deg)
 from core.stages.chain import RunDir  # noqa: E402
-from core.stages.pbr import PBRStageConfig, _frames, prior_inputs  # noqa: E402
+from core.stages.pbr import _frames, prior_inputs  # noqa: E402
+from core.stages.pbr_settings import PBRStageConfig  # noqa: E402
 from eval_pipeline import machine  # noqa: E402
 
 _STAGE = PBRStageConfig()

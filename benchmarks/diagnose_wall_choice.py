@@ -7,7 +7,7 @@ prior's sun search, each at its own best sun, over the same surface samples
 run (the pbr stage is stopped right after it) and keeps every sample's absolute residual under each
 hypothesis. The paired difference between two hypotheses then has a standard error, and
 ``z = mean difference / standard error`` says whether the gain is more than the choice of samples:
-a paired test the fixed relative margin (:attr:`core.stages.pbr.PBRStageConfig.wall_min_gain`)
+a paired test the fixed relative margin (:attr:`core.stages.pbr_settings.PBRStageConfig.wall_min_gain`)
 does not make.
 
     cp -r RUN/{priors,volume,generative_refine,volume2,run.json} COPY

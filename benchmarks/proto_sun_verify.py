@@ -27,7 +27,8 @@ from core.bundle import open_bundle
 from core.camera import Camera
 from core.pbr.envmap import EnvironmentMap, resample
 from core.pbr.render import render_pbr
-from core.stages.pbr import PBRStageConfig, _frames, prior_inputs
+from core.stages.pbr import _frames, prior_inputs
+from core.stages.pbr_settings import PBRStageConfig
 from core.lighting.prior import (LightingSettings, brightest_direction, compose_envmap, estimate_lighting,
                                  numpy_visibility, sun_direction_error_deg)
 

@@ -84,7 +84,7 @@ BACKENDS = ("native", "torch")
 
 #: The shading model the product renders with (relight, night, the evaluation and the pbr and joint
 #: stages: :class:`core.render.scenario.Scenario`, :class:`core.synth.evaluate.EvalSettings`,
-#: :class:`core.stages.pbr.StageShading`), where the bare :class:`PBRSettings` keep the paper's:
+#: :class:`core.stages.pbr_settings.StageShading`), where the bare :class:`PBRSettings` keep the paper's:
 #: Burley's diffuse lobe, the exact Smith masking term, pixels at least half opaque shaded as surfaces.
 PRODUCT_DIFFUSE = "burley"
 PRODUCT_MASKING = "smith"

@@ -110,7 +110,7 @@ class StageContext:
 def _specs() -> dict[str, StageSpec]:
     from core.stages.generative_refine import RefineSettings
     from core.stages.joint import JointSettings
-    from core.stages.pbr import PBRStageConfig
+    from core.stages.pbr_settings import PBRStageConfig
     from core.stages.volume import VolumeSettings
 
     return {s.name: s for s in (
@@ -142,7 +142,7 @@ def stage_spec(name: str) -> StageSpec:
 def _profile_table() -> dict[str, dict[str, Any]]:
     from core.stages.generative_refine import RefineSettings
     from core.stages.joint import JointSettings
-    from core.stages.pbr import PBRStageConfig
+    from core.stages.pbr_settings import PBRStageConfig
     from core.stages.volume import VolumeSettings
     from core.train.density import DensityConfig
     from core.train.init_lidar import LidarInitConfig

@@ -41,7 +41,7 @@ from core.pbr.visibility import GaussianTracer
 from core.raster import RasterSettings
 from core.scene_graph import SceneGraph
 from core.stages.early_stop import stalled
-from core.stages.pbr import StageShading
+from core.stages.pbr_settings import StageShading
 from core.stages.volume import (VolumeModel, _bce, _prior_tensors, _views, alignment_loss, attribute_prior_losses,
                                 lidar_depth_loss, prior_losses)
 from core.train.optim import GaussianAdam, GaussianLR

@@ -20,7 +20,7 @@ Here the capture decides. The prior's sun search runs once per hypothesis of :da
 (each side's unseen walls at their guessed height or at ``max_height_m``; the wall lines carved by
 the depth test or by sky pixels only), every time over the same surface samples. The hypothesis
 whose best sun leaves the smallest shading residual wins, and its sun and sky are the prior's.
-Whose occluders cast the shadows afterwards is :attr:`core.stages.pbr.PBRStageConfig.wall_shadows`:
+Whose occluders cast the shadows afterwards is :attr:`core.stages.pbr_settings.PBRStageConfig.wall_shadows`:
 
 * ``"auto"`` (the default): the winner's walls when its residual beats the guess's by at least
   ``wall_shadows_min_gain``, else the guess's (below);

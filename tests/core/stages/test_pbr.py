@@ -16,7 +16,8 @@ from core.lighting.prior_gains import PriorGainSettings
 from core.lighting.sky_evidence import SkyEvidence
 from core.scene_graph import SceneGraph
 from core.stages.chain import profile_settings
-from core.stages.pbr import PBRStageConfig, fit_lighting
+from core.stages.pbr import fit_lighting
+from core.stages.pbr_settings import PBRStageConfig
 from core.stages.volume import run_volume
 from core.train.sky import SkyDome
 

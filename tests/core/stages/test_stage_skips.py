@@ -16,7 +16,8 @@ import torch
 from core.camera import Camera
 from core.errors import ConfigError
 from core.stages.early_stop import stalled
-from core.stages.pbr import PBRStageConfig, _FrameData, sunless_capture
+from core.stages.pbr import _FrameData, sunless_capture
+from core.stages.pbr_settings import PBRStageConfig
 from core.stages.volume import VolumeSettings
 
 

@@ -31,7 +31,7 @@ def test_choose_takes_the_smallest_finite_residual_and_prefers_the_guess_on_a_ti
     assert choose({"none": 0.40, "left": 0.30, "both": 0.299}, 0.01) == "left"
     # the stage's default margin: a near-tie keeps the simpler hypothesis (dev4: "right" beat the
     # guess by less than 1e-5; the default scene: "sky+right" beat "right" by 0.2%)
-    from core.stages.pbr import PBRStageConfig
+    from core.stages.pbr_settings import PBRStageConfig
 
     g = PBRStageConfig().wall_min_gain
     assert choose({"none": 0.188912, "right": 0.188905}, g) == "none"
@@ -81,7 +81,7 @@ def test_hypotheses_keep_the_graphs_own_occluders_and_lift_one_side():
 
 @pytest.mark.mitsuba
 def test_the_pbr_stage_records_its_choice_and_later_stages_load_it(tiny_scene, tmp_path_factory):
-    from core.stages.pbr import PBRStageConfig
+    from core.stages.pbr_settings import PBRStageConfig
     from core.stages.chain import RunDir, run_pipeline
 
     out = tmp_path_factory.mktemp("walls") / "run"
@@ -182,7 +182,8 @@ def test_wall_shadows_guess_keeps_the_graphs_occluders_for_rendering(tiny_scene,
 
 
 def test_wall_shadow_source_auto_trusts_the_chosen_walls_only_on_a_clear_gain():
-    from core.stages.pbr import PBRStageConfig, wall_shadow_source
+    from core.stages.pbr import wall_shadow_source
+    from core.stages.pbr_settings import PBRStageConfig
 
     res = {"none": 0.31863, "sky": 0.31137, "sky+right": 0.3058, "right": 0.11021}
     auto = PBRStageConfig(wall_shadows="auto", wall_shadows_min_gain=0.02)
