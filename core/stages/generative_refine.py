@@ -125,7 +125,7 @@ def run_stage(ctx) -> dict:
     # how far the refinement moved: against the anchors and against the raw priors (non-sky)
     moved, from_raw = {}, {}
     for k in ("albedo", "roughness", "metallic"):
-        a, r0, r1 = [], [], []
+        a, r1 = [], []
         for f in frames:
             m = rendered[f.id]["opacity"][..., 0] > cfg.min_opacity
             a.append(np.abs(refined.layers[f.id][k] - rendered[f.id][k])[m].mean() if m.any() else 0.0)
