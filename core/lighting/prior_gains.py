@@ -57,7 +57,8 @@ class PriorGainSettings:
     a flat optimum keeps the prior."""
 
     def __post_init__(self) -> None:
-        bad = [n for n, ok in (("pixels", isinstance(self.pixels, int) and self.pixels >= 1),
+        bad = [n for n, ok in (("enabled", isinstance(self.enabled, bool)),
+                               ("pixels", isinstance(self.pixels, int) and self.pixels >= 1),
                                ("sun_cap_deg", 0 < self.sun_cap_deg < 90),
                                ("gain_min", 0 < self.gain_min <= 1), ("gain_max", 1 <= self.gain_max <= 1e3),
                                ("steps", isinstance(self.steps, int) and 3 <= self.steps <= 1001),

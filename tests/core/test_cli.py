@@ -155,3 +155,19 @@ def test_stage_line_never_prints_nan():
     line = _stage_line("volume", {"seconds": 3.0, "test_psnr": float("nan"), "gaussians": 100})
     assert "held-out PSNR: not measured" in line and "nan" not in line and "100 Gaussians" in line
     assert "held-out PSNR 21.23 dB" in _stage_line("volume", {"seconds": 3.0, "test_psnr": 21.234})
+
+
+def test_set_reaches_a_nested_group_of_stage_settings():
+    """``--set pbr.prior_gains.enabled=false`` turns the prior gains off; a value of the wrong type
+    is refused with the field's name."""
+    from core.cli import _parse_sets
+    from core.errors import ConfigError
+    from core.stages.chain import profile_settings
+
+    sets = _parse_sets(["pbr.prior_gains.enabled=false", "pbr.prior_gains.steps=11"])
+    assert sets == {"pbr": {"prior_gains.enabled": False, "prior_gains.steps": 11}}
+    cfg = profile_settings("quick", "pbr", sets["pbr"])
+    assert cfg.prior_gains.enabled is False and cfg.prior_gains.steps == 11
+    assert profile_settings("quick", "pbr").prior_gains.enabled is True
+    with pytest.raises(ConfigError, match="enabled"):
+        profile_settings("quick", "pbr", _parse_sets(["pbr.prior_gains.enabled=maybe"])["pbr"])
