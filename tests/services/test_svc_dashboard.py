@@ -328,6 +328,21 @@ def test_dashboard_operations_in_chromium(settings, tmp_path, browser, tiny_scen
     def css(sel):
         return browser.find_elements(By.CSS_SELECTOR, sel)
 
+    def read_all(sel, expr):
+        """``expr`` (JavaScript of ``e``) of every element at ``sel``, read in one script: the live
+        refresh (every 2 s) cannot swap the DOM between two elements' reads."""
+        return browser.execute_script(
+            f"return Array.from(document.querySelectorAll(arguments[0])).map(e => {expr});", sel)
+
+    def settled(read, tries=25):
+        """``read()`` retried while the live refresh swaps the DOM under the elements it reads."""
+        for _ in range(tries - 1):
+            try:
+                return read()
+            except (StaleElementReferenceException, NoSuchElementException):
+                time.sleep(0.2)
+        return read()
+
     def db_writable() -> bool:
         """No process holds the SQLite database's write lock (a horse stopped inside a write
         transaction would hold it for as long as it is stopped: the gateway's cancel then failed
@@ -395,23 +410,26 @@ def test_dashboard_operations_in_chromium(settings, tmp_path, browser, tiny_scen
         wait(lambda d: css("#job-summary[data-state='running']"), 30, "job A's page to show it running")
         assert css("#cancel") and not css("#retry")
         os.kill(horse, signal.SIGKILL)
-        row = wait(lambda d: css("#attempts tr.attempt[data-attempt='1'][data-outcome='retried']"), 15,
-                   "the retried attempt")[0]
-        assert "killed by signal 9 (SIGKILL)" in row.find_element(By.CSS_SELECTOR, ".reason").text
+        retried = "#attempts tr.attempt[data-attempt='1'][data-outcome='retried']"
+        wait(lambda d: css(retried), 15, "the retried attempt")
+        assert "killed by signal 9 (SIGKILL)" in settled(lambda: css(retried + " .reason")[0].text)
         wait(lambda d: css("#job-summary[data-state='done']"), 120, "job A to finish")
-        assert [r.get_attribute("data-outcome") for r in css("#attempts tr.attempt")] == ["retried", "done"]
-        durations = {r.get_attribute("data-stage"): r.find_element(By.CSS_SELECTOR, ".duration").text
-                     for r in css("#timeline tr.stage")}
+        # the page keeps refreshing itself after the job ends: each read is retried as a whole
+        assert read_all("#attempts tr.attempt", "e.dataset.outcome") == ["retried", "done"]
+        durations = dict(read_all("#timeline tr.stage",
+                                  "[e.dataset.stage, e.querySelector('.duration').innerText.trim()]"))
         assert list(durations) == ["fetch", "export", "upload"] and all(v.endswith(" s") for v in durations.values())
         names = [x["name"] for x in c.get(f"/jobs/{a}/artifacts").json()["items"]]
-        assert [x.text for x in css("#artifacts tr.artifact a")] == names and "test.mp4" in names
-        assert css("#artifacts tr.artifact a")[0].get_attribute("href").endswith(f"/jobs/{a}/artifacts/{names[0]}")
-        # the inline player loads the MP4 through the artifact route (cookie session, Range)
-        video = css("#artifacts video")[0]
-        wait(lambda d: d.execute_script("return arguments[0].readyState >= 1 || arguments[0].error !== null", video),
+        links = read_all("#artifacts tr.artifact a", "[e.innerText.trim(), e.href]")
+        assert [t for t, _ in links] == names and "test.mp4" in names
+        assert links[0][1].endswith(f"/jobs/{a}/artifacts/{names[0]}")
+        # the inline player loads the MP4 through the artifact route (cookie session, Range); the
+        # element is looked up inside each script, so a refresh between two calls cannot stale it
+        video_js = "const v = document.querySelector('#artifacts video'); "
+        wait(lambda d: d.execute_script(video_js + "return v !== null && (v.readyState >= 1 || v.error !== null)"),
              30, "the video's metadata")
-        assert browser.execute_script("return arguments[0].error", video) is None, "the MP4 did not decode"
-        assert browser.execute_script("return arguments[0].duration", video) > 0
+        assert browser.execute_script(video_js + "return v.error") is None, "the MP4 did not decode"
+        assert browser.execute_script(video_js + "return v.duration") > 0
         assert css("#params tr.param[data-key='split']")
 
         # 3. cancel and retry buttons go through the API
@@ -439,7 +457,7 @@ def test_dashboard_operations_in_chromium(settings, tmp_path, browser, tiny_scen
         browser.execute_script("document.getElementById('retry').click()")
         wait(lambda d: "retry: job is queued" in d.find_element(By.ID, "action-result").text, 20, "the retry")
         wait(lambda d: css("#job-summary[data-state='done']"), 120, "the retried job B to finish")
-        reasons = [r.text for r in css("#attempts tr.attempt .reason")]
+        reasons = read_all("#attempts tr.attempt .reason", "e.innerText.trim()")
         assert reasons[0].startswith("canceled by request; then retried by request (operator key"), reasons
 
         # 4. a reconstruction: loss curves with axes and stage boundaries, and its quality figures
@@ -447,15 +465,15 @@ def test_dashboard_operations_in_chromium(settings, tmp_path, browser, tiny_scen
         browser.get(f"{base}/dashboard/jobs/{r}")
         wait(lambda d: css("#job-summary[data-state='done']") or css("#job-summary[data-state='failed']"), 300,
              "the reconstruction to finish")
-        assert css("#job-summary[data-state='done']"), css("#job-summary")[0].text
-        assert [p.get_attribute("data-stage") for p in css("#loss-chart polyline.loss")] == ["volume", "pbr"]
-        assert [p.get_attribute("data-stage") for p in css("#loss-chart line.boundary")] == ["volume", "pbr"]
-        yticks = [float(t.text.replace(",", "")) for t in css("#loss-chart text.ytick")]
+        assert css("#job-summary[data-state='done']"), settled(lambda: css("#job-summary")[0].text)
+        assert read_all("#loss-chart polyline.loss", "e.dataset.stage") == ["volume", "pbr"]
+        assert read_all("#loss-chart line.boundary", "e.dataset.stage") == ["volume", "pbr"]
+        yticks = [float(t.replace(",", "")) for t in read_all("#loss-chart text.ytick", "e.textContent.trim()")]
         assert len(yticks) >= 2 and yticks == sorted(yticks)
         api_loss = {s["name"]: s["metrics"]["loss"] for s in c.get(f"/jobs/{r}").json()["stages"]}
-        last = css("#loss tr.loss-row[data-stage='volume'] .last")[0].text
+        last = settled(lambda: css("#loss tr.loss-row[data-stage='volume'] .last")[0].text)
         assert float(last) == pytest.approx(api_loss["volume"][-1], rel=1e-3)
-        psnr = css("#quality tr.figure[data-key='test_psnr'] span[data-stage='volume'] b")[0].text
+        psnr = settled(lambda: css("#quality tr.figure[data-key='test_psnr'] span[data-stage='volume'] b")[0].text)
         assert float(psnr) == pytest.approx(
             next(s for s in c.get(f"/jobs/{r}").json()["stages"] if s["name"] == "volume")["metrics"]["test_psnr"],
             abs=1e-2)
@@ -465,15 +483,14 @@ def test_dashboard_operations_in_chromium(settings, tmp_path, browser, tiny_scen
         Select(browser.find_element(By.ID, "f-type")).select_by_value("reconstruct")
         browser.find_element(By.ID, "apply-filters").click()
         wait(lambda d: "type=reconstruct" in d.current_url, 10, "the filtered page")
-        rows = css("#jobs tr.job")
-        assert [x.get_attribute("data-job-id") for x in rows] == [r]
+        assert read_all("#jobs tr.job", "e.dataset.jobId") == [r]
         Select(browser.find_element(By.ID, "f-type")).select_by_value("render")
         Select(browser.find_element(By.ID, "f-scene")).select_by_value(sid)
         browser.find_element(By.ID, "apply-filters").click()
         wait(lambda d: "type=render" in d.current_url, 10, "the filtered page")
         time.sleep(2.5)  # a live refresh keeps the filter
-        assert [x.get_attribute("data-job-id") for x in css("#jobs tr.job")] == [a]
-        assert "1-1 of 1" in browser.find_element(By.ID, "page-info").text
+        assert read_all("#jobs tr.job", "e.dataset.jobId") == [a]
+        assert "1-1 of 1" in settled(lambda: browser.find_element(By.ID, "page-info").text)
         browser.save_screenshot(str(tmp_path / "dashboard-ops.png"))
     finally:
         for p in procs:
