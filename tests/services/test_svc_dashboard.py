@@ -80,7 +80,6 @@ def browser(tmp_path):
     d.quit()
 
 
-@pytest.mark.slow
 def _text(browser, css: str, tries: int = 20) -> str:
     """Text of the element at ``css``, retried while the live refresh swaps the DOM under it."""
     from selenium.webdriver.common.by import By
@@ -93,6 +92,7 @@ def _text(browser, css: str, tries: int = 20) -> str:
     return browser.find_element(By.CSS_SELECTOR, css).text
 
 
+@pytest.mark.slow
 def test_dashboard_end_to_end_in_chromium(settings, tmp_path, browser):
     from selenium.webdriver.common.by import By
     from selenium.webdriver.support import expected_conditions as EC
