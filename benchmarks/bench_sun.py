@@ -45,13 +45,14 @@ from eval_pipeline import machine  # noqa: E402
 
 _STAGE = PBRStageConfig()
 
-#: Named variants; any "+"-joined set of the tokens lambert | transport, shadows, mats (leave out
+#: Named variants; any "+"-joined set of the tokens lambert | transport | hybrid (sun_model
+#: "lambert+transport"), shadows, mats (leave out
 #: glossy and metallic samples), nooccl (shadows through the Gaussians alone, no completed facades),
 #: noalb (luminance instead of radiance / albedo), FIELD=JSON (a LightingSettings field), gtgeo, gtalb, gtmat (ground-truth G-buffers: diagnostics) is one too.
 VARIANT_TOKENS = {"product": f"lambert+shadows+max_points={_STAGE.prior_points}+basin_quantile={_STAGE.prior_basin_quantile}",
                   "no_shadows": "lambert", "lambert_shadows": "lambert+shadows", "transport_shadows": "transport+shadows",
                   "gt_all": "lambert+gtgeo+gtalb+gtmat", "gt_all_shadows": "lambert+shadows+gtgeo+gtalb+gtmat"}
-TOKENS = {"lambert", "transport", "shadows", "nooccl", "noalb", "mats", "gtgeo", "gtalb", "gtmat"}
+TOKENS = {"lambert", "transport", "hybrid", "shadows", "nooccl", "noalb", "mats", "gtgeo", "gtalb", "gtmat"}
 VARIANTS = tuple(VARIANT_TOKENS)
 
 
@@ -104,7 +105,7 @@ def run_one(run_path: str, variants) -> dict:
         t1 = time.perf_counter()
         d = dict(x)
         toks = set(VARIANT_TOKENS.get(v, v).split("+"))
-        model = "transport" if "transport" in toks else "lambert"
+        model = ("lambert+transport" if "hybrid" in toks else "transport" if "transport" in toks else "lambert")
         use_vis, mats = "shadows" in toks, "mats" in toks or model == "transport"
         if "gtgeo" in toks:
             d.update(dep=np.where(gt["sky"], 0, gt["dep"]), nrm=gt["nrm"])

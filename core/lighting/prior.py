@@ -117,7 +117,9 @@ class LightingSettings:
     """Model of the sun search: ``"transport"`` (:mod:`core.lighting.sky_transport`: the sky as
     non-negative patches seen through the occluders, the observed sky as a prior, the light the
     frames saw on the occluders as interreflection), ``"lambert"`` (ambient + uniform dome +
-    sun) or ``"auto"``: transport when an occluder model (``visibility``) is given, else lambert
+    sun), ``"lambert+transport"`` (the lambert search finds the sun's region, the transport model
+    places the sun within ``transport_cone_deg`` of it; needs ``visibility``, else lambert alone)
+    or ``"auto"``: transport when an occluder model (``visibility``) is given, else lambert
     (without occluders the patches next to the sun can stand in for it: default scene 94 deg
     off with transport, 14 with lambert). Measured on 8 sunny development streets (city,
     sunrise, sunset: s100, s101, s104-s106, s109-s111) with the true meshes as occluders: mean
@@ -182,6 +184,15 @@ class LightingSettings:
     refinement could leave the radius put the sun 11.2 / 32.9 / 6.8 / 38.9 deg off; refinement
     held within 20 deg 11.2 / 6.1 / 6.8 / 38.9, within 15 or 10 deg 11.2 / 6.1 / 6.8 / 22.3."""
 
+    transport_points: int = 4000
+    """``sun_model="lambert+transport"``: surface samples (a random subset of the ``max_points``)
+    of the transport step (the transport fit's cost grows with samples x patches x rays: on a
+    quick development reconstruction 4000 took about 30 s, 16000 over ten minutes)."""
+    transport_cone_deg: float = 30.0
+    """``sun_model="lambert+transport"``: the transport search stays within this angle of the
+    lambert search's sun (the lambert model finds the sun's region, the sky patches of the
+    transport model then tell a low sun from its glow: see ``sun_model``)."""
+
     def __post_init__(self) -> None:
         if self.height < 8 or not (0.5 < self.saturation <= 1.0) or self.max_points < 50 or self.search_starts < 1:
             raise ConfigError(f"LightingSettings out of range: {self}")
@@ -195,8 +206,13 @@ class LightingSettings:
         if not (self.chroma_weight >= 0.0 and math.isfinite(self.chroma_weight)) or not self.chroma_knee > 0.0:
             raise ConfigError(f"chroma_weight / chroma_knee: expected >= 0 / > 0, got {self.chroma_weight} / "
                               f"{self.chroma_knee}")
-        if self.sun_model not in ("auto", "transport", "lambert"):
-            raise ConfigError(f"sun_model: must be 'auto', 'transport' or 'lambert', got {self.sun_model!r}")
+        if self.sun_model not in ("auto", "transport", "lambert", "lambert+transport"):
+            raise ConfigError(f"sun_model: must be 'auto', 'transport', 'lambert' or 'lambert+transport', got "
+                              f"{self.sun_model!r}")
+        if self.transport_points < 50:
+            raise ConfigError(f"transport_points: must be >= 50, got {self.transport_points}")
+        if not (0.0 < self.transport_cone_deg <= 180.0):
+            raise ConfigError(f"transport_cone_deg: must be in (0, 180], got {self.transport_cone_deg}")
 
 
 @dataclass
@@ -394,6 +410,29 @@ def _lambert_score(nrm, shading, vis_of=None, chroma=None, chroma_weight: float 
             out.append(r)
         return np.array(out)
     return score
+
+
+def _transport_in_cone(t_score, centre, s: LightingSettings, diag: dict) -> np.ndarray:
+    """The transport search (``t_score``, :func:`_transport_score`) restricted to directions within
+    ``s.transport_cone_deg`` of ``centre`` [3] (the lambert search's sun); its best direction, or
+    ``centre`` when no candidate in the cone has a sun term. Records ``diag["transport_search"]``."""
+    c = _unit(centre)
+    cos_c = math.cos(math.radians(s.transport_cone_deg))
+
+    def cone_score(dirs):
+        d = np.asarray(dirs, np.float64).reshape(-1, 3)
+        out = np.full(len(d), np.inf)
+        inside = d @ c >= cos_c
+        if inside.any():
+            out[inside] = t_score(d[inside])
+        return out
+    t_sun, t_res, d_t = _search_sun(cone_score, s)
+    ok = math.isfinite(t_res)
+    diag["transport_search"] = {"residual": t_res if ok else None, "contrast": d_t["shading_contrast"],
+                                "cone_deg": s.transport_cone_deg, "sun_dir": [round(float(x), 6) for x in t_sun],
+                                "moved_deg": round(sun_direction_error_deg(t_sun, c), 2) if ok else 0.0,
+                                "used": bool(ok)}
+    return _unit(t_sun) if ok else c
 
 
 def _transport_score(tr):
@@ -679,25 +718,36 @@ def estimate_lighting(frames_ldr, cameras, sky_masks, depth, normals, *,
     source, sun, coef = "none", np.array([0.0, 0.0, 1.0]), np.zeros(3)
     if len(pick) >= 50:
         model = s.sun_model if s.sun_model != "auto" else ("transport" if vis_of is not None else "lambert")
+        if model == "lambert+transport" and vis_of is None:  # the transport step needs the occluders
+            model = "lambert"
         diag["sun_model"] = model
-        if model == "transport":
+        t_score = None
+        if model in ("transport", "lambert+transport"):
             # clipped channels only bound the radiance from below: at the clip level
             sky_low = np.where(sky_sat, (s.saturation ** gamma) / exposure, sky_rad).mean(-1)
             seen = None
             if vis_of is not None and s.transport.interreflection:
                 seen = observed_radiance_lookup(cams, dep, rad.mean(-1), sky | sat.any(-1))
+            # the transport's samples: all of them, or (the second step of lambert+transport) a
+            # random subset of transport_points (its cost grows with samples x patches x rays)
+            tp = np.arange(len(pick))
+            if model == "lambert+transport" and len(tp) > s.transport_points:
+                tp = np.sort(rng.choice(tp, s.transport_points, replace=False))
+            diag["transport_samples"] = int(len(tp))
+            tpick = pick[tp]
             weights, brdf = None, "lambert"
             if s.surface_brdf == "paper" and albedo is not None and "roughness" in mats:
-                met = mats["metallic"][surf][pick] if "metallic" in mats else np.zeros(len(pick))
-                weights = paper_brdf_weights(nn, -rays[surf][pick], alb[surf][pick], mats["roughness"][surf][pick], met)
+                met = mats["metallic"][surf][tpick] if "metallic" in mats else np.zeros(len(tpick))
+                weights = paper_brdf_weights(nn[tp], -rays[surf][tpick], alb[surf][tpick], mats["roughness"][surf][tpick],
+                                             met)
                 brdf = "paper"
             diag["surface_brdf"] = brdf
-            tr = SkyTransport(pts if vis_of is not None else np.zeros_like(nn), nn, shade, visibility,
+            tr = SkyTransport(pts[tp] if vis_of is not None else np.zeros_like(nn[tp]), nn[tp], shade[tp], visibility,
                               sky_dirs, sky_low, s.transport, radiance_at=seen, sky_clipped=sky_sat.any(-1),
                               weights=weights)
             diag["interreflection_known_fraction"] = tr.known_fraction
-            score = _transport_score(tr)
-        else:
+            score = t_score = _transport_score(tr)
+        if model != "transport":
             chroma = None
             if albedo is not None and s.chroma_weight > 0:  # log(S_r / S_b): the colour cue
                 a_rb, r_rb = alb[surf][pick][:, [0, 2]], rad[surf][pick][:, [0, 2]]
@@ -710,6 +760,8 @@ def estimate_lighting(frames_ldr, cameras, sky_masks, depth, normals, *,
         diag.update(d_sh)
         if math.isfinite(res_best) and d_sh["shading_contrast"] >= s.min_shading_contrast:
             sun, source = sun_fit, "shading"
+            if model == "lambert+transport":
+                sun = _transport_in_cone(t_score, sun_fit, s, diag)
     sat_all = sky_sat.all(-1)
     cluster = _sky_cluster(sky_dirs[sat_all], s) if sat_all.any() else None
     if cluster is not None and cluster[2] > 0:

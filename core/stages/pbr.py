@@ -155,10 +155,11 @@ def prior_inputs(frames: list[_FrameData], search_sun: bool = True) -> dict[str,
 
 
 def _prior(frames: list[_FrameData], bundle, height: int, tracer=None, search_sun: bool = True, *,
-           points: int, basin_quantile: float):
+           points: int, basin_quantile: float, sun_model: str = "lambert"):
     """``E_g`` from the reconstruction's G-buffers (:func:`core.lighting.prior.estimate_lighting`),
     with cast shadows traced through ``tracer`` (the static Gaussians and completed facades; None =
-    no shadows); ``points`` and ``basin_quantile`` of the sun search. ``search_sun`` False: no
+    no shadows); ``points``, ``basin_quantile`` and ``sun_model`` (``"lambert"`` or
+    ``"lambert+transport"``, :attr:`PBRStageConfig.prior_sun_model`) of the sun search. ``search_sun`` False: no
     surface sample is given (depth 0 everywhere), so the estimate runs no sun search and is the
     sky fit alone."""
     x = prior_inputs(frames, search_sun)
@@ -167,7 +168,7 @@ def _prior(frames: list[_FrameData], bundle, height: int, tracer=None, search_su
                              albedo=x["albedo"], exposure=m.ldr_exposure, gamma=m.ldr_gamma,
                              # lambert: with the reconstruction's shadows the sky-patch transport
                              # model put the default scene's sun 31.7 deg off (benchmarks/bench_sun.py)
-                             settings=LightingSettings(height=max(height, 8), sun_model="lambert", max_points=points,
+                             settings=LightingSettings(height=max(height, 8), sun_model=sun_model, max_points=points,
                                                        basin_quantile=basin_quantile),
                              visibility=numpy_visibility(tracer) if tracer is not None else None)
 
@@ -212,6 +213,11 @@ def _choose_walls(graph, bundle, frames: list[_FrameData], static_tracer, occ: O
         chosen = choose(residuals, cfg.wall_min_gain)
     except ConfigError:  # no search found a sun under any hypothesis: the graph's own occluders
         chosen = "none"
+    if cfg.prior_sun_model != "lambert" and tracers.get(chosen) is not None:
+        # the hypotheses are compared by the lambert search's residual; the chosen one's sun is
+        # then placed by the stage's sun model (one more search, not eight)
+        ests[chosen] = _prior(frames, bundle, 512, tracers[chosen], search_sun=True, points=cfg.prior_points,
+                              basin_quantile=cfg.prior_basin_quantile, sun_model=cfg.prior_sun_model)
     render, gain = wall_shadow_source(residuals, chosen, cfg)  # whose shadows the stage renders
     graph.occluders = occs[render]
     tracer = tracers[render]
@@ -360,7 +366,8 @@ def fit_lighting(graph, bundle, out_dir: str | Path, cfg: PBRStageConfig | None 
                         "no sun search" if not search_sun else
                         "the graph has no occluders, or their settings are unknown")
         est = _prior(frames, bundle, 512, static_tracer if cfg.prior_shadows else None, search_sun=search_sun,
-                     points=cfg.prior_points, basin_quantile=cfg.prior_basin_quantile)
+                     points=cfg.prior_points, basin_quantile=cfg.prior_basin_quantile,
+                     sun_model=cfg.prior_sun_model)
     t_prior = time.perf_counter() - t_prior
     prior_full = np.asarray(est.envmap, np.float32)
     h = cfg.env_height
@@ -506,6 +513,8 @@ def fit_lighting(graph, bundle, out_dir: str | Path, cfg: PBRStageConfig | None 
                "capture_sky": {"sunless": sunless, **sky_stats}, "skips_fired": fired,
                "photometric_psnr_prior": psnr_before, "photometric_psnr_fitted": psnr_after,
                "sun_source": est.sun_source, "sun_dir_prior": [float(x) for x in est.sun_dir],
+               "sun_model": est.diagnostics.get("sun_model"),
+               "transport_search": est.diagnostics.get("transport_search"),
                "sky_evidence": sky_stats_obs, "prior_gains": gains, "sun_floor": sun_floor_stats, "wall_heights": walls,
                "history": history, "resumed_from_iteration": start,
                "seconds": {"gbuffers": t_frames, "prior": t_prior, "total": time.perf_counter() - t0}}

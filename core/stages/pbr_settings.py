@@ -109,6 +109,17 @@ class PBRStageConfig(StageShading):
     high) stays 22-29 deg off on dev2 and test2: with the true albedo the search finds dev2's within
     17 deg, with the reconstruction's it does not. (Before the completed facades existed, the
     soft, incomplete Gaussians alone put the default scene's sun 94 deg off with the cue.)"""
+    prior_sun_model: str = "lambert+transport"
+    """Model of the prior's sun search (:attr:`core.lighting.prior.LightingSettings.sun_model`):
+    ``"lambert"`` (ambient + uniform dome + sun, with cast shadows) or ``"lambert+transport"``:
+    the lambert search finds the sun's region (and compares the wall hypotheses), then the
+    sky-patch transport model places the sun within 30 deg of it, once, for the chosen
+    hypothesis. A low sun's glow lights what faces it as a sun higher up would under a uniform
+    dome: on dev6 (sunrise 7.9 deg high behind the camera) the lambert search put it at 27 deg
+    elevation, 22.8 deg off; the transport model alone found it within 2.9 deg but put the
+    default scene's 80 deg off (the patches stood in for a high sun), the cone keeps it at 25.3
+    (lambert 24.5; ``benchmarks/bench_sun.py``, volume2 of one quick reconstruction each). The
+    whole pipeline: ``benchmarks/results/sun_transport.json``."""
     prior_points: int = 16000
     """Surface pixels (random subset of the training frames) of the prior's sun search
     (:attr:`core.lighting.prior.LightingSettings.max_points`). With shadows, 4000 left the
@@ -227,6 +238,8 @@ class PBRStageConfig(StageShading):
             raise ConfigError(f"sky_evidence: expected SkyEvidenceSettings, got {type(self.sky_evidence).__name__}")
         if not isinstance(self.prior_gains, PriorGainSettings):
             raise ConfigError(f"prior_gains: expected PriorGainSettings, got {type(self.prior_gains).__name__}")
+        if self.prior_sun_model not in ("lambert", "lambert+transport"):
+            raise ConfigError(f"prior_sun_model: must be 'lambert' or 'lambert+transport', got {self.prior_sun_model!r}")
         if self.wall_shadows not in ("auto", "chosen", "guess"):
             raise ConfigError(f"wall_shadows: must be 'auto', 'chosen' or 'guess', got {self.wall_shadows!r}")
         if not isinstance(self.skip_sun_search, bool):

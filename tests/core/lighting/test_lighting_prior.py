@@ -186,3 +186,36 @@ def test_colour_cue_finds_the_sun_through_a_grey_albedo_error():
     assert flat == pytest.approx(min(plain, 1.0) + 1.0)
     with pytest.raises(ConfigError, match="chroma_weight"):
         L.LightingSettings(chroma_weight=-1.0)
+
+
+def test_transport_search_in_the_lambert_suns_cone():
+    """``sun_model="lambert+transport"``'s second step: the transport landscape's deepest point
+    lies outside the cone around the lambert sun and is ignored; within the cone the transport
+    minimum (a low sun under the lambert sun's too-high guess) is found; a cone with no
+    candidate that has a sun term keeps the lambert sun."""
+    lam_sun = L._sph(math.radians(190.0), math.radians(27.0))  # the lambert search's answer
+    low_sun = L._sph(math.radians(184.0), math.radians(8.0))  # 19.6 deg from it, inside 30 deg
+    far = L._sph(math.radians(40.0), math.radians(50.0))  # deeper, but far outside the cone
+
+    def score(cands):
+        c = np.asarray(cands, np.float64).reshape(-1, 3)
+        to_low = np.degrees(np.arccos(np.clip(c @ low_sun, -1, 1)))
+        to_far = np.degrees(np.arccos(np.clip(c @ far, -1, 1)))
+        return 0.5 + 0.3 * (1 - np.exp(-(to_low / 10.0) ** 2)) - 0.45 * np.exp(-(to_far / 10.0) ** 2)
+
+    s = L.LightingSettings(sun_model="lambert+transport", transport_cone_deg=30.0, basin_quantile=0.05)
+    diag: dict = {}
+    got = L._transport_in_cone(score, lam_sun, s, diag)
+    assert L.sun_direction_error_deg(got, low_sun) < 1.5
+    assert diag["transport_search"]["used"] and diag["transport_search"]["moved_deg"] > 15.0
+    # the unrestricted transport search would have taken the far valley
+    plain, _, _ = L._search_sun(score, L.LightingSettings())
+    assert L.sun_direction_error_deg(plain, far) < 2.0
+    # no candidate with a sun term in the cone: the lambert sun stays
+    diag = {}
+    kept = L._transport_in_cone(lambda c: np.full(len(np.asarray(c).reshape(-1, 3)), np.inf), lam_sun, s, diag)
+    assert L.sun_direction_error_deg(kept, lam_sun) < 1e-9 and not diag["transport_search"]["used"]
+    with pytest.raises(ConfigError, match="transport_cone_deg"):
+        L.LightingSettings(transport_cone_deg=0.0)
+    with pytest.raises(ConfigError, match="sun_model"):
+        L.LightingSettings(sun_model="hybrid")
