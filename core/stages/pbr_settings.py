@@ -119,7 +119,11 @@ class PBRStageConfig(StageShading):
     elevation, 22.8 deg off; the transport model alone found it within 2.9 deg but put the
     default scene's 80 deg off (the patches stood in for a high sun), the cone keeps it at 25.3
     (lambert 24.5; ``benchmarks/bench_sun.py``, volume2 of one quick reconstruction each). The
-    whole pipeline: ``benchmarks/results/sun_transport.json``."""
+    whole pipeline, pbr and joint re-run from one volume2 per development scene at quick
+    (``benchmarks/results/sun_transport.json``): sun 16.8 -> 16.9 / 23.8 -> 12.7 / 8.1 -> 15.2
+    deg (default, dev6, dev2; mean 16.2 -> 14.9), re-render 23.38 -> 23.46 / 20.59 -> 20.73 /
+    20.60 -> 22.66 dB, relight 22.03 -> 22.05 / 20.48 -> 20.50 / 23.08 -> 22.79 dB. Costs one
+    lambert and one transport search more (the default scene's prior 204 -> 340 s, shared cores)."""
     prior_points: int = 16000
     """Surface pixels (random subset of the training frames) of the prior's sun search
     (:attr:`core.lighting.prior.LightingSettings.max_points`). With shadows, 4000 left the
