@@ -166,8 +166,8 @@ def _prior(frames: list[_FrameData], bundle, height: int, tracer=None, search_su
     m = bundle.manifest
     return estimate_lighting(x["img"], Camera.stack([f.camera for f in frames]), x["sky"], x["depth"], x["normal"],
                              albedo=x["albedo"], exposure=m.ldr_exposure, gamma=m.ldr_gamma,
-                             # lambert: with the reconstruction's shadows the sky-patch transport
-                             # model put the default scene's sun 31.7 deg off (benchmarks/bench_sun.py)
+                             # not "transport" alone: with the reconstruction's shadows it put the
+                             # default scene's sun 31.7 (later 80) deg off (benchmarks/bench_sun.py)
                              settings=LightingSettings(height=max(height, 8), sun_model=sun_model, max_points=points,
                                                        basin_quantile=basin_quantile),
                              visibility=numpy_visibility(tracer) if tracer is not None else None)
