@@ -14,7 +14,7 @@ evaluation's metric; the same for each held-back map against its relit ground tr
 
 Measured (2026-12-02, dev6: ``brdf generate --profile quick --seed 106 --envmap sunrise --set
 envmap_rotation_deg=310 --set relight_every=4 --set num_frames=16 --set spp=128``; 4 test frames,
-``--spacing-px 3 --gt-materials``, 663k Gaussians): 19.61 dB, 25.3 dB after a 3 px blur. That is
+``--spacing-px 3 --gt-materials``, 663k Gaussians): 19.61 dB, 25.5 dB after a 3 px blur. That is
 *not* yet a ceiling: below the reconstructions' own re-render (20.7 dB on dev6 at quick in the
 previous session), the high frequencies dominate (the oracle's Gaussian edges against Mitsuba's
 meshes, the capture's path-tracing noise), and a reconstruction's albedo absorbs the light the pass
