@@ -31,7 +31,6 @@ import argparse
 import json
 import platform
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -42,8 +41,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from core.bundle import open_bundle  # noqa: E402
-from core.render.scenario import Scenario, render_scenario, views_from_frames  # noqa: E402
-from core.synth.evaluate import EvalSettings, _img_metrics, relit_reference_ldr  # noqa: E402
+from core.synth.evaluate import EvalSettings, _img_metrics, relit_reference_ldr, render_pbr_frames  # noqa: E402
 from core.synth.oracle import OracleSettings, street_scene_graph  # noqa: E402
 from core.synth.prepare import synth_config_of  # noqa: E402
 
@@ -51,21 +49,12 @@ from core.synth.prepare import synth_config_of  # noqa: E402
 def render_true_scene(graph, bundle, env_map: np.ndarray, frames, s: EvalSettings,
                       gt_materials: bool = False) -> list[np.ndarray]:
     """LDR frames ``[H, W, 3]`` of ``graph`` under ``env_map`` at the views of ``frames``, through
-    the evaluation's scenario settings. ``gt_materials``: the rasterised albedo, roughness and
-    metallic replaced by the bundle's true per-pixel ones (its textures) times the coverage."""
+    the evaluation's path (:func:`core.synth.evaluate.render_pbr_frames`). ``gt_materials``: the
+    rasterised albedo, roughness and metallic replaced by the bundle's true per-pixel ones (its
+    textures) times the coverage."""
     if gt_materials:
         return [f for fr in frames for f in _with_gt_materials(graph, bundle, env_map, fr, s)]
-    views = {v.name: v for v in views_from_frames(bundle, "all")}
-    m = bundle.manifest
-    sc = Scenario(views=tuple(views[f.id] for f in frames), envmap=np.asarray(env_map, np.float32),
-                  base_exposure=m.ldr_exposure, gamma=m.ldr_gamma, rays_per_pixel=s.rays_per_pixel,
-                  denoiser=s.denoiser, denoiser_fallback=None, normal_offset_m=s.normal_offset_m,
-                  shadow_t_min_m=s.shadow_t_min_m, object_shadow_t_min_m=s.object_shadow_t_min_m,
-                  indirect_bounces=s.indirect_bounces, indirect_specular_rays=s.indirect_specular_rays,
-                  diffuse=s.diffuse, masking=s.masking, opaque_above=s.opaque_above,
-                  object_solids=s.object_solids, outputs=("png",))
-    with tempfile.TemporaryDirectory(prefix="brdf-ceiling-") as tmp:
-        return list(render_scenario(graph, sc, tmp).result.frames)
+    return render_pbr_frames(graph, bundle, env_map, frames, s)
 
 
 def _with_gt_materials(graph, bundle, env_map, frame, s: EvalSettings) -> list[np.ndarray]:
@@ -113,7 +102,6 @@ def main() -> int:
     ap.add_argument("--out", default=None)
     ap.add_argument("--save", default=None, help="directory: each re-rendered frame beside the capture, PNG")
     a = ap.parse_args()
-    torch.set_num_threads(int(torch.get_num_threads()))
     b = open_bundle(a.bundle)
     s = EvalSettings()
     if a.bounces is not None:

@@ -130,6 +130,28 @@ def frame_intrinsics(r, gt_layers: dict, height: int, width: int) -> dict:
     return row
 
 
+def render_pbr_frames(graph, bundle, env_map: np.ndarray, frames, settings: EvalSettings,
+                      views: dict | None = None) -> list[np.ndarray]:
+    """LDR frames ``[H, W, 3]`` in [0, 1] of ``graph`` lit by ``env_map`` (``[H, 2H, 3]`` linear)
+    at the views of the bundle's ``frames``, through the path of a relight request
+    (:func:`core.render.scenario.render_scenario`, denoiser included) with ``settings``.
+    ``views``: the bundle's views by frame id (default: made from the bundle)."""
+    s = settings
+    views = views if views is not None else {v.name: v for v in views_from_frames(bundle, "all")}
+    m = bundle.manifest
+    sc = Scenario(views=tuple(views[f.id] for f in frames), envmap=np.asarray(env_map, np.float32),
+                  base_exposure=m.ldr_exposure, gamma=m.ldr_gamma, rays_per_pixel=s.rays_per_pixel,
+                  denoiser=s.denoiser, denoiser_fallback=None, normal_offset_m=s.normal_offset_m,
+                  shadow_t_min_m=s.shadow_t_min_m, object_shadow_t_min_m=s.object_shadow_t_min_m,
+                  indirect_bounces=s.indirect_bounces, indirect_specular_rays=s.indirect_specular_rays,
+                  diffuse=s.diffuse, masking=s.masking,
+                  opaque_above=s.opaque_above, object_solids=s.object_solids,
+                  outputs=("png",))
+    with tempfile.TemporaryDirectory(prefix="brdf-eval-") as tmp:
+        r = render_scenario(graph, sc, tmp)
+    return list(r.result.frames)
+
+
 def evaluate_run(run_dir: str | Path, bundle=None, settings: EvalSettings | None = None, *,
                  out: str | Path | None = None, on_step: Callable[[str], None] | None = None) -> dict:
     """Evaluate the reconstruction in ``run_dir`` (a :mod:`core.stages.chain` run) on ``bundle``
@@ -145,7 +167,6 @@ def evaluate_run(run_dir: str | Path, bundle=None, settings: EvalSettings | None
     graph, sky, graph_stage = run.load_scene()
     env_path, env_stage = run.latest_envmap()
     note = on_step or (lambda _m: None)
-    ex, gamma = b.manifest.ldr_exposure, b.manifest.ldr_gamma
     test = sorted(b.frames("test"), key=lambda f: (f.time_index, f.id))
     if not test:
         raise ConfigError(f"bundle {b.name!r}: has no test frames")
@@ -180,17 +201,7 @@ def evaluate_run(run_dir: str | Path, bundle=None, settings: EvalSettings | None
     all_views = {v.name: v for v in views_from_frames(b, "all")}
 
     def pbr_clip(env_map: np.ndarray, frames) -> list[np.ndarray]:
-        sc = Scenario(views=tuple(all_views[f.id] for f in frames), envmap=np.asarray(env_map, np.float32),
-                      base_exposure=ex, gamma=gamma, rays_per_pixel=s.rays_per_pixel, denoiser=s.denoiser,
-                      denoiser_fallback=None, normal_offset_m=s.normal_offset_m,
-                      shadow_t_min_m=s.shadow_t_min_m, object_shadow_t_min_m=s.object_shadow_t_min_m,
-                      indirect_bounces=s.indirect_bounces, indirect_specular_rays=s.indirect_specular_rays,
-                      diffuse=s.diffuse, masking=s.masking,
-                      opaque_above=s.opaque_above, object_solids=s.object_solids,
-                      outputs=("png",))
-        with tempfile.TemporaryDirectory(prefix="brdf-eval-") as tmp:
-            r = render_scenario(graph, sc, tmp)
-        return list(r.result.frames)
+        return render_pbr_frames(graph, b, env_map, frames, s, views=all_views)
 
     if env_path is not None:
         env_rec = read_envmap(env_path)
@@ -240,4 +251,4 @@ def summary_row(res: dict) -> dict:
     return {k: (round(v, 4) if isinstance(v, float) and math.isfinite(v) else v) for k, v in row.items()}
 
 
-__all__ = ["EvalSettings", "evaluate_run", "frame_intrinsics", "summary_row"]
+__all__ = ["EvalSettings", "evaluate_run", "frame_intrinsics", "render_pbr_frames", "summary_row"]
