@@ -4,7 +4,8 @@ the bundle's ground truth, which the product never does).
 For each finished stage with a scene graph (volume, volume2, joint) of a run, the intrinsics of
 ``brdf evaluate`` on the bundle's test frames (albedo si-PSNR, roughness and metallic RMSE, normal
 MAE on non-sky pixels), plus the metallic error split into true-metal pixels (ground-truth
-metallic > 0.5) and the rest. With ``--priors``, the same split for the inverse model's priors on
+metallic > 0.5) and the rest, and the share of it on pixels within 2 px of a metal /
+non-metal boundary (soft splat edges, thin poles) against the rest. With ``--priors``, the same split for the inverse model's priors on
 the training frames against the training frames' ground truth.
 
     python benchmarks/diagnose_materials.py RUN [RUN ...] [--out J]
@@ -18,6 +19,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import scipy.ndimage as nd
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -30,14 +32,27 @@ from core.stages.chain import GRAPH_STAGES, STAGES, RunDir  # noqa: E402
 from core.synth.evaluate import frame_intrinsics  # noqa: E402
 
 METAL_THRESHOLD = 0.5
+#: Half-width of the metal / non-metal boundary band, pixels (a soft splat edge spans 1-2 px at quick).
+BOUNDARY_PX = 2
 
 
-def _split(pred: torch.Tensor, true: torch.Tensor) -> dict:
-    """Squared-error sums of ``pred`` vs ``true`` (flat, masked already), all / metal / rest."""
+def boundary_mask(true_metallic: np.ndarray, px: int = BOUNDARY_PX) -> np.ndarray:
+    """``[H, W]`` bool: pixels within ``px`` pixels of a boundary between true metal and the rest
+    (``true_metallic`` ``[H, W]``)."""
+    metal = true_metallic > METAL_THRESHOLD
+    return nd.binary_dilation(metal, iterations=px) & ~nd.binary_erosion(metal, iterations=px, border_value=1)
+
+
+def _split(pred: torch.Tensor, true: torch.Tensor, boundary: torch.Tensor) -> dict:
+    """Squared-error sums of ``pred`` vs ``true`` (flat, masked already), all / metal / rest, and
+    on ``boundary`` pixels (flat bool, same mask)."""
     metal = true > METAL_THRESHOLD
     e2 = (pred - true) ** 2
     return {"n": int(e2.numel()), "se": float(e2.sum()), "n_metal": int(metal.sum()), "se_metal": float(e2[metal].sum()),
-            "pred_metal_sum": float(pred[metal].sum()), "pred_rest_sum": float(pred[~metal].sum())}
+            "pred_metal_sum": float(pred[metal].sum()), "pred_rest_sum": float(pred[~metal].sum()),
+            "n_boundary": int(boundary.sum()), "se_boundary": float(e2[boundary].sum()),
+            "n_metal_interior": int((metal & ~boundary).sum()),
+            "pred_metal_interior_sum": float(pred[metal & ~boundary].sum())}
 
 
 def _finish(acc: dict) -> dict:
@@ -48,7 +63,11 @@ def _finish(acc: dict) -> dict:
             "metal_share_of_error": acc["se_metal"] / max(acc["se"], 1e-12),
             "metallic_rmse_metal": float(np.sqrt(acc["se_metal"] / nm)),
             "metallic_rmse_rest": float(np.sqrt((acc["se"] - acc["se_metal"]) / rest)),
-            "mean_pred_on_metal": acc["pred_metal_sum"] / nm, "mean_pred_on_rest": acc["pred_rest_sum"] / rest}
+            "mean_pred_on_metal": acc["pred_metal_sum"] / nm, "mean_pred_on_rest": acc["pred_rest_sum"] / rest,
+            "boundary_share_of_pixels": acc["n_boundary"] / n,
+            "boundary_share_of_error": acc["se_boundary"] / max(acc["se"], 1e-12),
+            "metallic_rmse_off_boundary": float(np.sqrt((acc["se"] - acc["se_boundary"]) / max(n - acc["n_boundary"], 1))),
+            "mean_pred_on_metal_interior": acc["pred_metal_interior_sum"] / max(acc["n_metal_interior"], 1)}
 
 
 def _add(acc: dict | None, d: dict) -> dict:
@@ -75,7 +94,9 @@ def stage_materials(run: RunDir, bundle, stage: str, threads: int = 2) -> dict:
             row = frame_intrinsics(r, gtl, c.height, c.width)
             del row["metallic_rmse"]  # pooled over the frames below, with its metal / rest split
             met = (r.metallic * (1.0 / r.opacity.clamp_min(OPACITY_EPS))).clamp(0, 1)[..., 0].float()
-            acc = _add(acc, _split(met[mask], torch.from_numpy(gtl["metallic"]).reshape(mask.shape)[mask].float()))
+            tm = np.asarray(gtl["metallic"], np.float32).reshape(mask.shape)
+            edge = torch.from_numpy(boundary_mask(tm))
+            acc = _add(acc, _split(met[mask], torch.from_numpy(tm)[mask], edge[mask]))
             rows.append(row)
     out = {k: float(np.mean([r[k] for r in rows])) for k in rows[0]}
     out.update(_finish(acc))
@@ -98,7 +119,8 @@ def prior_materials(path: Path, bundle) -> dict:
         c = bundle.camera(fr)
         mask = torch.from_numpy(gtl["depth"].reshape(c.height, c.width) > 0)
         met = torch.as_tensor(np.asarray(layers["metallic"], np.float32)).reshape(mask.shape)
-        acc = _add(acc, _split(met[mask], torch.from_numpy(gtl["metallic"]).reshape(mask.shape)[mask].float()))
+        tm = np.asarray(gtl["metallic"], np.float32).reshape(mask.shape)
+        acc = _add(acc, _split(met[mask], torch.from_numpy(tm)[mask], torch.from_numpy(boundary_mask(tm))[mask]))
     return _finish(acc) if acc else {}
 
 
