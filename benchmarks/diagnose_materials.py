@@ -4,9 +4,9 @@ the bundle's ground truth, which the product never does).
 For each finished stage with a scene graph (volume, volume2, joint) of a run, the intrinsics of
 ``brdf evaluate`` on the bundle's test frames (albedo si-PSNR, roughness and metallic RMSE, normal
 MAE on non-sky pixels), plus the metallic error split into true-metal pixels (ground-truth
-metallic > 0.5) and the rest, and the share of it on pixels within 2 px of a metal /
-non-metal boundary (soft splat edges, thin poles) against the rest. With ``--priors``, the same split for the inverse model's priors on
-the training frames against the training frames' ground truth.
+metallic > 0.5) and the rest, and the share of it on pixels within 2 px of a metal / non-metal
+boundary (soft splat edges, thin poles) against the rest. With ``--priors``, the same split for
+the inverse model's priors on the training frames against the training frames' ground truth.
 
     python benchmarks/diagnose_materials.py RUN [RUN ...] [--out J]
 """
@@ -32,7 +32,7 @@ from core.stages.chain import GRAPH_STAGES, STAGES, RunDir  # noqa: E402
 from core.synth.evaluate import frame_intrinsics  # noqa: E402
 
 METAL_THRESHOLD = 0.5
-#: Half-width of the metal / non-metal boundary band, pixels (a soft splat edge spans 1-2 px at quick).
+#: Half-width of the metal / non-metal boundary band, pixels (materials_by_stage.json's boundary_finding).
 BOUNDARY_PX = 2
 
 
@@ -70,6 +70,13 @@ def _finish(acc: dict) -> dict:
             "mean_pred_on_metal_interior": acc["pred_metal_interior_sum"] / max(acc["n_metal_interior"], 1)}
 
 
+def _frame_split(pred_metallic: torch.Tensor, true_metallic: np.ndarray, mask: torch.Tensor) -> dict:
+    """:func:`_split` of one frame: ``pred_metallic`` and ``true_metallic`` ``[H, W]``, ``mask``
+    ``[H, W]`` bool (non-sky); the boundary band from the full frame's truth."""
+    tm = np.asarray(true_metallic, np.float32).reshape(mask.shape)
+    return _split(pred_metallic[mask], torch.from_numpy(tm)[mask], torch.from_numpy(boundary_mask(tm))[mask])
+
+
 def _add(acc: dict | None, d: dict) -> dict:
     if acc is None:
         return dict(d)
@@ -94,9 +101,7 @@ def stage_materials(run: RunDir, bundle, stage: str, threads: int = 2) -> dict:
             row = frame_intrinsics(r, gtl, c.height, c.width)
             del row["metallic_rmse"]  # pooled over the frames below, with its metal / rest split
             met = (r.metallic * (1.0 / r.opacity.clamp_min(OPACITY_EPS))).clamp(0, 1)[..., 0].float()
-            tm = np.asarray(gtl["metallic"], np.float32).reshape(mask.shape)
-            edge = torch.from_numpy(boundary_mask(tm))
-            acc = _add(acc, _split(met[mask], torch.from_numpy(tm)[mask], edge[mask]))
+            acc = _add(acc, _frame_split(met, gtl["metallic"], mask))
             rows.append(row)
     out = {k: float(np.mean([r[k] for r in rows])) for k in rows[0]}
     out.update(_finish(acc))
@@ -119,8 +124,7 @@ def prior_materials(path: Path, bundle) -> dict:
         c = bundle.camera(fr)
         mask = torch.from_numpy(gtl["depth"].reshape(c.height, c.width) > 0)
         met = torch.as_tensor(np.asarray(layers["metallic"], np.float32)).reshape(mask.shape)
-        tm = np.asarray(gtl["metallic"], np.float32).reshape(mask.shape)
-        acc = _add(acc, _split(met[mask], torch.from_numpy(tm)[mask], torch.from_numpy(boundary_mask(tm))[mask]))
+        acc = _add(acc, _frame_split(met, gtl["metallic"], mask))
     return _finish(acc) if acc else {}
 
 
