@@ -5,10 +5,13 @@ For each finished stage with a scene graph (volume, volume2, joint) of a run, th
 ``brdf evaluate`` on the bundle's test frames (albedo si-PSNR, roughness and metallic RMSE, normal
 MAE on non-sky pixels), plus the metallic error split into true-metal pixels (ground-truth
 metallic > 0.5) and the rest, and the share of it on pixels within 2 px of a metal / non-metal
-boundary (soft splat edges, thin poles) against the rest. With ``--priors``, the same split for
-the inverse model's priors on the training frames against the training frames' ground truth.
+boundary (soft splat edges, thin poles) against the rest, and the share on pixels within 2 px of
+thin metal parts (poles and their arms). With ``--priors``, the same split for the inverse model's
+priors on the training frames against the training frames' ground truth. With ``--oracle-floor``,
+each stage's metallic RMSE with every visible Gaussian's metallic taken from the truth (what the
+splat footprints cost on their own) and with the metallic rounded to 0 / 1.
 
-    python benchmarks/diagnose_materials.py RUN [RUN ...] [--out J]
+    python benchmarks/diagnose_materials.py RUN [RUN ...] [--priors] [--oracle-floor] [--out J]
 """
 
 from __future__ import annotations
@@ -43,12 +46,28 @@ def boundary_mask(true_metallic: np.ndarray, px: int = BOUNDARY_PX) -> np.ndarra
     return nd.binary_dilation(metal, iterations=px) & ~nd.binary_erosion(metal, iterations=px, border_value=1)
 
 
-def _split(pred: torch.Tensor, true: torch.Tensor, boundary: torch.Tensor) -> dict:
-    """Squared-error sums of ``pred`` vs ``true`` (flat, masked already), all / metal / rest, and
-    on ``boundary`` pixels (flat bool, same mask)."""
+def thin_metal_mask(true_metallic: np.ndarray, px: int = BOUNDARY_PX) -> np.ndarray:
+    """``[H, W]`` bool: pixels within ``px`` of a *thin* true-metal part (poles, arms: a connected
+    metal region that an erosion by ``px`` pixels leaves less than a fifth of)."""
+    metal = true_metallic > METAL_THRESHOLD
+    lab, n = nd.label(metal)
+    if n == 0:
+        return np.zeros_like(metal)
+    size = nd.sum(np.ones_like(lab), lab, index=np.arange(1, n + 1))
+    core = nd.sum(nd.binary_erosion(metal, iterations=px), lab, index=np.arange(1, n + 1))
+    thin_ids = np.flatnonzero(core < 0.2 * size) + 1
+    return nd.binary_dilation(np.isin(lab, thin_ids), iterations=px)
+
+
+def _split(pred: torch.Tensor, true: torch.Tensor, boundary: torch.Tensor, thin: torch.Tensor | None = None) -> dict:
+    """Squared-error sums of ``pred`` vs ``true`` (flat, masked already), all / metal / rest, on
+    ``boundary`` pixels (flat bool, same mask) and on ``thin`` ones (near thin metal; default none)."""
     metal = true > METAL_THRESHOLD
     e2 = (pred - true) ** 2
-    return {"n": int(e2.numel()), "se": float(e2.sum()), "n_metal": int(metal.sum()), "se_metal": float(e2[metal].sum()),
+    thin = torch.zeros_like(boundary) if thin is None else thin
+    return {"n_thin": int(thin.sum()), "se_thin": float(e2[thin].sum()),
+            "pred_thin_metal_sum": float(pred[thin & metal].sum()), "n_thin_metal": int((thin & metal).sum()),
+            "n": int(e2.numel()), "se": float(e2.sum()), "n_metal": int(metal.sum()), "se_metal": float(e2[metal].sum()),
             "pred_metal_sum": float(pred[metal].sum()), "pred_rest_sum": float(pred[~metal].sum()),
             "n_boundary": int(boundary.sum()), "se_boundary": float(e2[boundary].sum()),
             "n_metal_interior": int((metal & ~boundary).sum()),
@@ -67,14 +86,18 @@ def _finish(acc: dict) -> dict:
             "boundary_share_of_pixels": acc["n_boundary"] / n,
             "boundary_share_of_error": acc["se_boundary"] / max(acc["se"], 1e-12),
             "metallic_rmse_off_boundary": float(np.sqrt((acc["se"] - acc["se_boundary"]) / max(n - acc["n_boundary"], 1))),
-            "mean_pred_on_metal_interior": acc["pred_metal_interior_sum"] / max(acc["n_metal_interior"], 1)}
+            "mean_pred_on_metal_interior": acc["pred_metal_interior_sum"] / max(acc["n_metal_interior"], 1),
+            "thin_share_of_pixels": acc["n_thin"] / n,
+            "thin_share_of_error": acc["se_thin"] / max(acc["se"], 1e-12),
+            "mean_pred_on_thin_metal": acc["pred_thin_metal_sum"] / max(acc["n_thin_metal"], 1)}
 
 
 def _frame_split(pred_metallic: torch.Tensor, true_metallic: np.ndarray, mask: torch.Tensor) -> dict:
     """:func:`_split` of one frame: ``pred_metallic`` and ``true_metallic`` ``[H, W]``, ``mask``
     ``[H, W]`` bool (non-sky); the boundary band from the full frame's truth."""
     tm = np.asarray(true_metallic, np.float32).reshape(mask.shape)
-    return _split(pred_metallic[mask], torch.from_numpy(tm)[mask], torch.from_numpy(boundary_mask(tm))[mask])
+    return _split(pred_metallic[mask], torch.from_numpy(tm)[mask], torch.from_numpy(boundary_mask(tm))[mask],
+                  torch.from_numpy(thin_metal_mask(tm))[mask])
 
 
 def _add(acc: dict | None, d: dict) -> dict:
@@ -108,6 +131,48 @@ def stage_materials(run: RunDir, bundle, stage: str, threads: int = 2) -> dict:
     return out
 
 
+def oracle_floor(run: RunDir, bundle, stage: str, threads: int = 2) -> dict:
+    """The metallic RMSE of ``stage``'s scene graph on the test frames when, frame by frame, every
+    Gaussian whose centre the frame sees (its depth within 5% of the true depth at its pixel)
+    takes the true metallic of that pixel, the rest keeping theirs: what the splats' footprints
+    alone cost with per-Gaussian metallic right (ground truth input); beside it the graph as it
+    is and with each Gaussian's metallic rounded to 0 or 1."""
+    import dataclasses
+
+    before = STAGES[STAGES.index(stage) + 1] if STAGES.index(stage) + 1 < len(STAGES) else None
+    graph, _sky, st = run.load_scene(before)
+    assert st == stage, (st, stage)
+    rs = RasterSettings(threads=threads)
+    se = {"as_is": 0.0, "oracle_per_gaussian": 0.0, "rounded": 0.0}
+    n = 0
+    logit = lambda m: torch.logit(m.clamp(1e-4, 1 - 1e-4))  # noqa: E731
+    with torch.no_grad():
+        for f in sorted(bundle.frames("test"), key=lambda f: (f.time_index, f.id)):
+            c = bundle.camera(f)
+            cam = Camera.from_bundle(c, f)
+            g = graph.compose(float(bundle.manifest.times[f.time_index])).detach()
+            gtl = bundle.load_ground_truth(f)
+            tm = gtl["metallic"].reshape(c.height, c.width)
+            dep = gtl["depth"].reshape(c.height, c.width)
+            uv, z = cam.project(g.means.double().numpy())
+            ok = np.isfinite(uv).all(1) & (z > 0)
+            u = np.floor(np.nan_to_num(uv[:, 0], nan=-1.0)).astype(int)
+            v = np.floor(np.nan_to_num(uv[:, 1], nan=-1.0)).astype(int)
+            ok &= (u >= 0) & (u < c.width) & (v >= 0) & (v < c.height)
+            ok[ok] = np.abs(dep[v[ok], u[ok]] - z[ok]) < 0.05 * z[ok]
+            m0 = g.metallic()[:, 0].clone()
+            m_or = m0.clone()
+            m_or[torch.from_numpy(ok)] = torch.from_numpy(tm[v[ok], u[ok]]).to(m0.dtype)
+            mask = dep > 0
+            for k, m in (("as_is", m0), ("oracle_per_gaussian", m_or), ("rounded", (m0 > 0.5).to(m0.dtype))):
+                gg = dataclasses.replace(g, metallic_logits=logit(m)[:, None].to(g.metallic_logits.dtype))
+                r = rasterize_gaussians(gg, cam, settings=rs)
+                pred = (r.metallic * (1.0 / r.opacity.clamp_min(OPACITY_EPS))).clamp(0, 1)[..., 0].double().numpy()
+                se[k] += float((((pred - tm) ** 2))[mask].sum())
+            n += int(mask.sum())
+    return {f"metallic_rmse_{k}": float(np.sqrt(v / max(n, 1))) for k, v in se.items()}
+
+
 def prior_materials(path: Path, bundle) -> dict:
     """A priors file's metallic layer on the training frames against their truth."""
     from core.stages.priors import GBufferPriors
@@ -132,6 +197,8 @@ def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("runs", nargs="+")
     ap.add_argument("--priors", action="store_true", help="also the inverse model's priors on the training frames")
+    ap.add_argument("--oracle-floor", action="store_true",
+                    help="also each stage's metallic RMSE with per-Gaussian metallic from the truth (oracle_floor)")
     ap.add_argument("--out", default=None)
     a = ap.parse_args(argv)
     res = {}
@@ -147,6 +214,8 @@ def main(argv=None) -> None:
         for st in GRAPH_STAGES:
             if run.is_done(st):
                 per[st] = stage_materials(run, b, st)
+                if a.oracle_floor:
+                    per[st].update(oracle_floor(run, b, st))
                 print(r, st, json.dumps({k: round(v, 4) for k, v in per[st].items()}), flush=True)
         res[r] = per
     if a.out:

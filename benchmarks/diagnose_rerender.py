@@ -13,7 +13,9 @@ meshes as "oracle" occluders), which the product never does.
 ``regions``: the evaluation's re-render (64 rays, OIDN, ``core.synth.evaluate``'s settings) and the
 novel views against the test frames, split by the true G-buffers into sky, ground (n_z > 0.8),
 glass walls (|n_z| < 0.3, roughness < 0.25), other walls and the rest, and by frequency (a
-Gaussian of ``--sigma`` pixels: the low-pass error is shading, the rest detail).
+Gaussian of ``--sigma`` pixels: the low-pass error is shading, the rest detail); and by the true
+G-buffers' edges (:func:`edge_classes`: silhouettes, creases, albedo edges, flat surfaces, sky),
+with the novel views' PSNR minus the re-render's per class (``edge_class_gap_db``).
 
 ``gains``: the true map split into its sun (10 deg around the brightest direction) and the rest,
 each rendered by the PBR stage's pass on the stage's training pixels (the run's ``--stage``
@@ -71,6 +73,12 @@ from core.scene_graph import SceneGraph  # noqa: E402
 from core.stages.chain import RunDir, profile_settings  # noqa: E402
 
 SUN_CAP_DEG = 10.0
+#: Edge classes of the regions split: a 3x3 neighbourhood whose true log depth spans more than this
+#: is a silhouette, whose normals (any component) span more than ``CREASE_SPAN`` a crease, whose
+#: albedo (any channel) spans more than ``ALBEDO_SPAN`` an albedo edge; each class dilated by 1 px.
+SILHOUETTE_LOG_DEPTH_SPAN = 0.2
+CREASE_SPAN = 0.2
+ALBEDO_SPAN = 0.15
 #: The oracle occluders' lattice is this many times finer than lighting_harness's (``--oracle-finer``).
 ORACLE_FINER = 1.0
 MAP_H = 256
@@ -88,6 +96,26 @@ def _sun_mask(true_map: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     sd = brightest_direction(true_map)
     d = envmap_directions(MAP_H, 2 * MAP_H)
     return d @ sd > np.cos(np.radians(SUN_CAP_DEG)), sd
+
+
+def _span(x: np.ndarray) -> np.ndarray:
+    """[H, W] the largest per-channel range of ``x`` [H, W, C] over each 3x3 neighbourhood."""
+    return (nd.maximum_filter(x, size=(3, 3, 1)) - nd.minimum_filter(x, size=(3, 3, 1))).max(-1)
+
+
+def edge_classes(albedo: np.ndarray, depth: np.ndarray, normal: np.ndarray) -> dict[str, np.ndarray]:
+    """Disjoint [H, W] bool masks of one frame's true G-buffers (``albedo`` [H, W, 3], ``depth``
+    [H, W] camera z, metres, 0 on sky, ``normal`` [H, W, 3]): ``silhouette`` (depth jumps),
+    ``crease`` (normal changes, not a silhouette), ``albedo_edge`` (albedo changes only),
+    ``flat`` (none of them) and ``sky`` (depth 0, not next to an edge); they cover the frame."""
+    sky = depth <= 0
+    logd = np.log(np.where(sky, 1e3, np.maximum(depth, 1e-3)))[..., None]
+    grow = lambda m: nd.binary_dilation(m, iterations=1)  # noqa: E731
+    sil = grow(_span(logd) > SILHOUETTE_LOG_DEPTH_SPAN)
+    crease = grow(_span(normal) > CREASE_SPAN) & ~sil
+    alb = grow(_span(albedo) > ALBEDO_SPAN) & ~sil & ~crease
+    edge = sil | crease | alb
+    return {"silhouette": sil, "crease": crease, "albedo_edge": alb, "flat": ~edge & ~sky, "sky": ~edge & sky}
 
 
 def regions(run_dir: str, sigma: float) -> dict:
@@ -128,6 +156,9 @@ def regions(run_dir: str, sigma: float) -> dict:
     glass = wall & (rough < 0.25)
     masks = {"sky": sky_m, "ground": ground, "wall_glass": glass, "wall_other": wall & ~glass,
              "rest": ~sky_m & ~ground & ~wall}
+    alb = np.stack([g["albedo"].reshape(h, w, 3) for g in gts])
+    per = [edge_classes(alb[i], dep[i], nrm[i]) for i in range(len(gts))]
+    edges = {k: np.stack([p[k] for p in per]) for k in per[0]}
     low = lambda x: nd.gaussian_filter(x, (0, sigma, sigma, 0))  # noqa: E731
     out = {"frames": len(test), "sigma_px": sigma}
     for name, img in (("rerender", rr), ("nvs", nvs)):
@@ -140,7 +171,12 @@ def regions(run_dir: str, sigma: float) -> dict:
                                  "share_of_low_error": round(float(e_low[m].sum() / e_low.sum()), 4),
                                  "low_mse": float(e_low[m].mean()) if m.any() else None,
                                  "mean": np.round(img[m].mean(0), 4).tolist(), "mean_capture": np.round(ref[m].mean(0), 4).tolist()}
+        row["edge_classes"] = {k: {"pixels": round(float(m.mean()), 4), "psnr": round(_psnr(float(e_all[m].mean())), 3),
+                                   "share_of_error": round(float(e_all[m].sum() / e_all.sum()), 4)}
+                               for k, m in edges.items() if m.any()}
         out[name] = row
+    out["edge_class_gap_db"] = {k: round(out["nvs"]["edge_classes"][k]["psnr"] - out["rerender"]["edge_classes"][k]["psnr"], 3)
+                                for k in out["rerender"]["edge_classes"]}
     return out
 
 

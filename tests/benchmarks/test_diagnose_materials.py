@@ -48,3 +48,23 @@ def test_the_boundary_band_is_the_pixels_near_a_metal_edge_only():
     assert not b[6, 6]  # the interior, 4 px from the edge
     assert not boundary_mask(np.zeros((5, 5), np.float32)).any()  # no metal: no boundary
     assert not boundary_mask(np.ones((5, 5), np.float32)).any()  # all metal: the frame edge is no boundary
+
+
+def test_thin_metal_mask_takes_poles_and_leaves_car_bodies():
+    from benchmarks.diagnose_materials import thin_metal_mask
+
+    m = np.zeros((30, 40), np.float32)
+    m[2:28, 5] = 1.0          # a 1 px pole
+    m[10:22, 20:36] = 1.0     # a car body, 12 x 16 px
+    thin = thin_metal_mask(m)
+    assert thin[15, 5] and thin[15, 7] and not thin[15, 8]   # the pole and 2 px around it
+    assert not thin[16, 28] and not thin[10, 20]             # the body and its edge are not thin
+    assert not thin_metal_mask(np.zeros((8, 8), np.float32)).any()
+
+
+def test_split_counts_thin_pixels():
+    r = _finish(_split(torch.tensor([0.4, 1.0, 0.0]), torch.tensor([1.0, 1.0, 0.0]),
+                       torch.tensor([True, False, False]), torch.tensor([True, False, False])))
+    assert math.isclose(r["thin_share_of_pixels"], 1 / 3)
+    assert math.isclose(r["thin_share_of_error"], 1.0)
+    assert math.isclose(r["mean_pred_on_thin_metal"], 0.4, rel_tol=1e-6)
