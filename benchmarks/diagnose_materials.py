@@ -106,71 +106,70 @@ def _add(acc: dict | None, d: dict) -> dict:
     return {k: acc[k] + d[k] for k in acc}
 
 
-def stage_materials(run: RunDir, bundle, stage: str, threads: int = 2) -> dict:
-    """Intrinsics of ``stage``'s scene graph on the bundle's test frames."""
-    before = STAGES[STAGES.index(stage) + 1] if STAGES.index(stage) + 1 < len(STAGES) else None
-    graph, _sky, st = run.load_scene(before)
-    assert st == stage, (st, stage)
-    rs = RasterSettings(threads=threads)
-    times = bundle.manifest.times
-    acc, rows = None, []
-    with torch.no_grad():
-        for f in sorted(bundle.frames("test"), key=lambda f: (f.time_index, f.id)):
-            c = bundle.camera(f)
-            g = graph.compose(float(times[f.time_index])).detach()
-            r = rasterize_gaussians(g, Camera.from_bundle(c, f), settings=rs)
-            gtl = bundle.load_ground_truth(f)
-            mask = torch.from_numpy(gtl["depth"].reshape(c.height, c.width) > 0)
-            row = frame_intrinsics(r, gtl, c.height, c.width)
-            del row["metallic_rmse"]  # pooled over the frames below, with its metal / rest split
-            met = (r.metallic * (1.0 / r.opacity.clamp_min(OPACITY_EPS))).clamp(0, 1)[..., 0].float()
-            acc = _add(acc, _frame_split(met, gtl["metallic"], mask))
-            rows.append(row)
-    out = {k: float(np.mean([r[k] for r in rows])) for k in rows[0]}
-    out.update(_finish(acc))
-    return out
+def _metallic_map(r) -> torch.Tensor:
+    """[H, W] the metallic a raster output ``r`` shows per pixel (its layer over its opacity)."""
+    return (r.metallic * (1.0 / r.opacity.clamp_min(OPACITY_EPS))).clamp(0, 1)[..., 0].float()
 
 
-def oracle_floor(run: RunDir, bundle, stage: str, threads: int = 2) -> dict:
-    """The metallic RMSE of ``stage``'s scene graph on the test frames when, frame by frame, every
-    Gaussian whose centre the frame sees (its depth within 5% of the true depth at its pixel)
-    takes the true metallic of that pixel, the rest keeping theirs: what the splats' footprints
-    alone cost with per-Gaussian metallic right (ground truth input); beside it the graph as it
-    is and with each Gaussian's metallic rounded to 0 or 1."""
+def _oracle_metallic(g, cam: Camera, true_metallic: np.ndarray, true_depth: np.ndarray) -> torch.Tensor:
+    """[N] the metallic of the Gaussians ``g`` with every one whose centre ``cam`` sees (its depth
+    within 5% of the true depth at its pixel) set to the true metallic of that pixel."""
+    h, w = true_depth.shape
+    uv, z = cam.project(g.means.double().numpy())
+    ok = np.isfinite(uv).all(1) & (z > 0)
+    u = np.floor(np.nan_to_num(uv[:, 0], nan=-1.0)).astype(int)
+    v = np.floor(np.nan_to_num(uv[:, 1], nan=-1.0)).astype(int)
+    ok &= (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    ok[ok] = np.abs(true_depth[v[ok], u[ok]] - z[ok]) < 0.05 * z[ok]
+    m = g.metallic()[:, 0].clone()
+    m[torch.from_numpy(ok)] = torch.from_numpy(true_metallic[v[ok], u[ok]]).to(m.dtype)
+    return m
+
+
+def stage_materials(run: RunDir, bundle, stage: str, threads: int = 2, oracle_floor: bool = False) -> dict:
+    """Intrinsics of ``stage``'s scene graph on the bundle's test frames. With ``oracle_floor``
+    also ``metallic_rmse_oracle_per_gaussian``: the pooled metallic RMSE when, frame by frame,
+    every Gaussian whose centre the frame sees takes the true metallic of its pixel, the rest
+    keeping theirs (what the splats' footprints alone cost with per-Gaussian metallic right;
+    ground truth input), and ``metallic_rmse_rounded`` with each Gaussian's metallic rounded to
+    0 or 1 (``metallic_rmse_as_is`` beside them is the pooled ``metallic_rmse``)."""
     import dataclasses
 
     before = STAGES[STAGES.index(stage) + 1] if STAGES.index(stage) + 1 < len(STAGES) else None
     graph, _sky, st = run.load_scene(before)
     assert st == stage, (st, stage)
     rs = RasterSettings(threads=threads)
-    se = {"as_is": 0.0, "oracle_per_gaussian": 0.0, "rounded": 0.0}
+    times = bundle.manifest.times
+    acc, rows = None, []
+    se = {"oracle_per_gaussian": 0.0, "rounded": 0.0}
     n = 0
-    logit = lambda m: torch.logit(m.clamp(1e-4, 1 - 1e-4))  # noqa: E731
     with torch.no_grad():
         for f in sorted(bundle.frames("test"), key=lambda f: (f.time_index, f.id)):
             c = bundle.camera(f)
             cam = Camera.from_bundle(c, f)
-            g = graph.compose(float(bundle.manifest.times[f.time_index])).detach()
+            g = graph.compose(float(times[f.time_index])).detach()
+            r = rasterize_gaussians(g, cam, settings=rs)
             gtl = bundle.load_ground_truth(f)
-            tm = gtl["metallic"].reshape(c.height, c.width)
-            dep = gtl["depth"].reshape(c.height, c.width)
-            uv, z = cam.project(g.means.double().numpy())
-            ok = np.isfinite(uv).all(1) & (z > 0)
-            u = np.floor(np.nan_to_num(uv[:, 0], nan=-1.0)).astype(int)
-            v = np.floor(np.nan_to_num(uv[:, 1], nan=-1.0)).astype(int)
-            ok &= (u >= 0) & (u < c.width) & (v >= 0) & (v < c.height)
-            ok[ok] = np.abs(dep[v[ok], u[ok]] - z[ok]) < 0.05 * z[ok]
-            m0 = g.metallic()[:, 0].clone()
-            m_or = m0.clone()
-            m_or[torch.from_numpy(ok)] = torch.from_numpy(tm[v[ok], u[ok]]).to(m0.dtype)
-            mask = dep > 0
-            for k, m in (("as_is", m0), ("oracle_per_gaussian", m_or), ("rounded", (m0 > 0.5).to(m0.dtype))):
-                gg = dataclasses.replace(g, metallic_logits=logit(m)[:, None].to(g.metallic_logits.dtype))
-                r = rasterize_gaussians(gg, cam, settings=rs)
-                pred = (r.metallic * (1.0 / r.opacity.clamp_min(OPACITY_EPS))).clamp(0, 1)[..., 0].double().numpy()
-                se[k] += float((((pred - tm) ** 2))[mask].sum())
-            n += int(mask.sum())
-    return {f"metallic_rmse_{k}": float(np.sqrt(v / max(n, 1))) for k, v in se.items()}
+            mask = torch.from_numpy(gtl["depth"].reshape(c.height, c.width) > 0)
+            row = frame_intrinsics(r, gtl, c.height, c.width)
+            del row["metallic_rmse"]  # pooled over the frames below, with its metal / rest split
+            acc = _add(acc, _frame_split(_metallic_map(r), gtl["metallic"], mask))
+            rows.append(row)
+            if oracle_floor:
+                tm = gtl["metallic"].reshape(c.height, c.width)
+                variants = {"oracle_per_gaussian": _oracle_metallic(g, cam, tm, gtl["depth"].reshape(c.height, c.width)),
+                            "rounded": (g.metallic()[:, 0] > 0.5).to(g.metallic_logits.dtype)}
+                for k, m in variants.items():
+                    logits = torch.logit(m.clamp(1e-4, 1 - 1e-4))[:, None].to(g.metallic_logits.dtype)
+                    pred = _metallic_map(rasterize_gaussians(dataclasses.replace(g, metallic_logits=logits), cam, settings=rs))
+                    se[k] += float(((pred - torch.from_numpy(tm)) ** 2)[mask].sum())
+                n += int(mask.sum())
+    out = {k: float(np.mean([r[k] for r in rows])) for k in rows[0]}
+    out.update(_finish(acc))
+    if oracle_floor:
+        out["metallic_rmse_as_is"] = out["metallic_rmse"]
+        out.update({f"metallic_rmse_{k}": float(np.sqrt(v / max(n, 1))) for k, v in se.items()})
+    return out
 
 
 def prior_materials(path: Path, bundle) -> dict:
@@ -198,7 +197,7 @@ def main(argv=None) -> None:
     ap.add_argument("runs", nargs="+")
     ap.add_argument("--priors", action="store_true", help="also the inverse model's priors on the training frames")
     ap.add_argument("--oracle-floor", action="store_true",
-                    help="also each stage's metallic RMSE with per-Gaussian metallic from the truth (oracle_floor)")
+                    help="also each stage's metallic RMSE with per-Gaussian metallic from the truth (stage_materials)")
     ap.add_argument("--out", default=None)
     a = ap.parse_args(argv)
     res = {}
@@ -213,9 +212,7 @@ def main(argv=None) -> None:
                 print(r, k, json.dumps({k2: round(v, 4) for k2, v in per[k].items()}), flush=True)
         for st in GRAPH_STAGES:
             if run.is_done(st):
-                per[st] = stage_materials(run, b, st)
-                if a.oracle_floor:
-                    per[st].update(oracle_floor(run, b, st))
+                per[st] = stage_materials(run, b, st, oracle_floor=a.oracle_floor)
                 print(r, st, json.dumps({k: round(v, 4) for k, v in per[st].items()}), flush=True)
         res[r] = per
     if a.out:
