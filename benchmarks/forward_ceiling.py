@@ -15,17 +15,19 @@ per-pixel corrector *can* remove when it is given every advantage a shipped mode
   light and street: a looser bound);
 * ``rerender``: fitted on every second test frame under the recovered capture map against the
   capture, scored on the others;
-* ``*_in_sample``: scored on the frames it was fitted on (the loosest bound: memorisation).
+* ``*_in_sample``: scored on the frames it was fitted on (the loosest bound: memorisation);
+* ``cross_street`` (two or more runs): fitted on every other street's relit frames, scored on one
+  street's relit frames and its re-render, each street left out in turn: what a model trained on
+  other streets, as the product's is, reaches.
 
 The corrector is a small dilated CNN (receptive field 61 px) over the OIDN frame (LDR), the
 reconstruction's albedo, camera-frame normal, roughness, metallic, opacity and log depth; it
-predicts a residual added to the OIDN frame. Its gain over OIDN on held-out frames is what a
-forward pass of that capacity, trained on that very scene, would reach; a model trained on other
-streets, as the product's is, can only do worse unless it is far larger and the error is learnable
-across streets. The in-sample gain says how much of the error is a function of these inputs at all
-at this capacity.
+predicts a residual added to the OIDN frame. The same-street gains say how much of the error is a
+function of these inputs at this capacity; the cross-street gains, how much of it carries over.
+The rendered inputs can be cached (``--cache``, one npz per run directory, keyed by its path: delete
+it after re-running a stage).
 
-    python benchmarks/forward_ceiling.py RUN [RUN ...] --out benchmarks/results/forward_ceiling.json
+    python benchmarks/forward_ceiling.py RUN [RUN ...] [--cross-only] [--cache DIR] --out J
 
 Not part of the product: it reads the bundle's ground truth (the Mitsuba relit frames, the
 capture's test frames).
@@ -248,8 +250,8 @@ def cross_street(datas: list[dict], steps: int, crop: int, seed: int, log) -> di
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("runs", nargs="+", help="reconstruction run directories (brdf reconstruct --out)")
-    ap.add_argument("--steps", type=int, default=1500, help="Adam steps per fit")
-    ap.add_argument("--crop", type=int, default=96, help="training crop, pixels")
+    ap.add_argument("--steps", type=int, default=800, help="Adam steps per fit")
+    ap.add_argument("--crop", type=int, default=64, help="training crop, pixels")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--role", default="dev", help="development or test scenes (recorded)")
     ap.add_argument("--out", required=True, help="JSON to write")
@@ -267,6 +269,8 @@ def main(argv=None) -> int:
     log = lambda m: print(m, flush=True)  # noqa: E731
     cache = Path(a.cache) if a.cache else None
     datas = [collect(r, cache, log) for r in a.runs]
+    out = Path(a.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
     if len(datas) >= 2:
         res["cross_street"] = cross_street(datas, a.steps, a.crop, a.seed, log)
         cs = list(res["cross_street"].values())
@@ -274,19 +278,17 @@ def main(argv=None) -> int:
         res["mean"]["cross_street_relight_ssim_gain"] = float(np.mean([c["relight"]["mean"]["ssim_gain"] for c in cs]))
         rr = [c["rerender"]["psnr_gain_db"] for c in cs if "rerender" in c]
         res["mean"]["cross_street_rerender_psnr_gain_db"] = float(np.mean(rr)) if rr else None
-        Path(a.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(a.out).write_text(json.dumps(res, indent=1))  # the cross-street figures, before the longer fits
+        out.write_text(json.dumps(res, indent=1))  # the cross-street figures, before the longer fits
     if not a.cross_only:
         res["runs"] = [within_street(d, r, a.steps, a.crop, a.seed, log) for d, r in zip(datas, a.runs)]
-    for key in ("relight", "relight_same_map", "relight_in_sample"):
-        vals = [r[key]["mean"]["psnr_gain_db"] for r in res["runs"] if r[key]["mean"]]
-        res.setdefault("mean", {})[f"{key}_psnr_gain_db"] = float(np.mean(vals)) if vals else None
-    for key in ("rerender", "rerender_in_sample"):
-        vals = [r[key]["psnr_gain_db"] for r in res["runs"] if key in r]
-        res.setdefault("mean", {})[f"{key}_psnr_gain_db"] = float(np.mean(vals)) if vals else None
+        for key in ("relight", "relight_same_map", "relight_in_sample"):
+            vals = [r[key]["mean"]["psnr_gain_db"] for r in res["runs"] if r[key]["mean"]]
+            res["mean"][f"{key}_psnr_gain_db"] = float(np.mean(vals)) if vals else None
+        for key in ("rerender", "rerender_in_sample"):
+            vals = [r[key]["psnr_gain_db"] for r in res["runs"] if key in r]
+            res["mean"][f"{key}_psnr_gain_db"] = float(np.mean(vals)) if vals else None
     res["seconds"] = round(time.perf_counter() - t0, 1)
-    Path(a.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(a.out).write_text(json.dumps(res, indent=1))
+    out.write_text(json.dumps(res, indent=1))
     print(json.dumps(res["mean"], indent=1))
     return 0
 
