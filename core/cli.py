@@ -282,9 +282,14 @@ def cmd_relight(a: argparse.Namespace) -> int:
     b = _open_any(str(run.scene_path()))
     views, fps, lights, edits = _scenario_common(a, b)
     m = b.manifest
+    from core.render.scenario import scene_corrector
+
+    corrector, note = scene_corrector(run) if a.corrector == "auto" else (None, "off (--corrector off)")
+    if not a.quiet:
+        print(f"scene corrector: {note}")
     sc = Scenario(tuple(views), load_hdri(a.envmap), rotation_deg=a.rotation, lights=tuple(lights), edits=tuple(edits),
                   exposure_ev=_ev(a.exposure), base_exposure=m.ldr_exposure, gamma=m.ldr_gamma, rays_per_pixel=a.rays,
-                  shadows=not a.no_shadows, denoiser=a.denoiser, fps=fps)
+                  shadows=not a.no_shadows, denoiser=a.denoiser, fps=fps, corrector=corrector)
     return _render_and_report(run, a, sc, "relight")
 
 
@@ -331,7 +336,7 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
     from core.synth.evaluate import EvalSettings, evaluate_run
 
     b = _open_any(a.scene) if a.scene else None
-    s = EvalSettings(rays_per_pixel=a.rays, denoiser=a.denoiser, max_frames=a.max_frames)
+    s = EvalSettings(rays_per_pixel=a.rays, denoiser=a.denoiser, max_frames=a.max_frames, corrector=not a.no_corrector)
     res = evaluate_run(a.run, b, s, out=a.out, on_step=None if a.quiet else (lambda m: print(f"  {m} done", flush=True)))
     print(json.dumps(res["summary"], indent=1))
     print(f"  written: {Path(a.out or a.run) / 'evaluation.json'}")
@@ -535,6 +540,8 @@ def build_parser(extensions=()) -> argparse.ArgumentParser:
     rl.add_argument("--envmap", required=True, help="bundled HDRI name (city, sunset, ...) or an .exr/.hdr file")
     rl.add_argument("--rotation", type=float, default=0.0, help="rotate the map about +z, degrees")
     rl.add_argument("--no-shadows", action="store_true", help="no ray-traced visibility (faster, no shadows)")
+    rl.add_argument("--corrector", default="auto", choices=["auto", "off"], help="auto: apply the scene corrector "
+                    "the run's corrector stage fitted on the capture, when it has one; off: the denoised PBR frames")
     rl.set_defaults(fn=cmd_relight)
 
     nt = sub.add_parser("night", help="render a reconstruction at night (scaled sky, headlights, lights)")
@@ -560,6 +567,8 @@ def build_parser(extensions=()) -> argparse.ArgumentParser:
     ev.add_argument("--rays", type=int, default=64, help="PBR rays per pixel")
     ev.add_argument("--denoiser", default="oidn", choices=["none", "oidn", "diffusion"])
     ev.add_argument("--max-frames", type=int, default=0, help="test frames evaluated (0 = all)")
+    ev.add_argument("--no-corrector", action="store_true", help="score the denoised PBR frames without the run's "
+                    "scene corrector")
     ev.add_argument("--quiet", action="store_true")
     ev.set_defaults(fn=cmd_evaluate)
 

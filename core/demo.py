@@ -31,7 +31,7 @@ from core.io.hdri import load_hdri
 from core.io.images import read_image, write_png
 from core.numerics import OPACITY_EPS
 from core.raster import RasterSettings, rasterize_gaussians
-from core.render.scenario import Scenario, night_scenario, render_scenario, views_from_frames
+from core.render.scenario import Scenario, night_scenario, render_scenario, scene_corrector, views_from_frames
 from core.stages.chain import RUN_FILE, RunDir, run_pipeline
 from core.synth.evaluate import EvalSettings, evaluate_run, relit_reference_ldr
 
@@ -144,7 +144,8 @@ def run_demo(scene: str | Path, out: str | Path, settings: DemoSettings | None =
                   rays_per_pixel=s.rays_per_pixel, denoiser=s.denoiser)
     t1 = time.perf_counter()
     say(f"relight under {name!r} ({len(views)} frames) ...")
-    relit = render_scenario(graph, Scenario(envmap=load_hdri(name), **common), out / "relit")
+    relit = render_scenario(graph, Scenario(envmap=load_hdri(name), corrector=scene_corrector(run)[0], **common),
+                            out / "relit")
     secs["relight"] = round(time.perf_counter() - t1, 1)
     t1 = time.perf_counter()
     say("night clip ...")

@@ -198,14 +198,20 @@ def apply_edits(graph, edits: Sequence[ObjectEdit], what: str = "edits"):
 def render_clip(scene, env: EnvironmentMap, views: Sequence[View], out_dir: str | Path, *,
                 settings: PBRSettings | None = None, lights=(), outputs: Sequence[str] = OUTPUT_KINDS,
                 denoiser: str = "none", denoiser_fallback: str | None = None, fps: float = 10.0,
-                on_frame: Callable[[int, int], None] | None = None, auto_exposure=None) -> RelightResult:
+                on_frame: Callable[[int, int], None] | None = None, auto_exposure=None,
+                corrector=None, features_out: list | None = None) -> RelightResult:
     """Render ``views`` of ``scene`` (a SceneGraph or Gaussians) lit by ``env`` and ``lights``
     with the PBR pass (reuse across the clip: static BVH once, visibility cache when
     ``settings.reuse_visibility``), denoise the LDR clip, and write the outputs (module
     docstring). ``on_frame(done, total)`` is called after each frame (progress, cancel checks).
     ``auto_exposure`` (:class:`core.render.exposure.AutoExposure`): one exposure for the clip
     measured on its HDR frames replaces ``settings.exposure`` for the LDR clip (the EXR keeps
-    the HDR). Raises ConfigError for an empty view list, unknown outputs or a bad fps."""
+    the HDR). ``corrector`` (:class:`core.gen.scene_corrector.SceneCorrector`, fitted on this
+    scene's capture): applied to each denoised LDR frame with its G-buffers (the MP4 / PNG and
+    ``frames``; the EXR keeps the PBR pass's HDR). ``features_out``: a list that receives each
+    frame's corrector features ``[H, W, 13]`` (of the denoised frame, before any correction: what
+    the ``corrector`` stage fits on). Raises ConfigError for an empty view list,
+    unknown outputs or a bad fps."""
     if not views:
         raise ConfigError("views: at least one view is needed")
     bad = [o for o in outputs if o not in OUTPUT_KINDS]
@@ -221,6 +227,7 @@ def render_clip(scene, env: EnvironmentMap, views: Sequence[View], out_dir: str 
     ldr, albedo, normal, hdr = [], [], [], []
     extra: dict[str, list] = {"depth": [], "roughness": [], "metallic": []}
     c2w = []
+    corr_in: list[tuple[dict, np.ndarray]] = []
     t0 = time.perf_counter()
     for i, v in enumerate(views):
         r = renderer.render(v.camera, time_s=v.time_s, frame_index=i)
@@ -237,6 +244,10 @@ def render_clip(scene, env: EnvironmentMap, views: Sequence[View], out_dir: str 
             for k in extra:
                 extra[k].append(r.gbuffers[k].detach().to(torch.float32).numpy())
             c2w.append(v.camera.pose_numpy())
+        if corrector is not None or features_out is not None:
+            keep = ("albedo", "normal", "roughness", "metallic", "opacity", "depth")
+            corr_in.append(({k: r.gbuffers[k].detach().to(torch.float32).numpy() for k in keep},
+                            v.camera.cam_to_world[:3, :3].detach().to(torch.float64).numpy().T))
         if on_frame is not None:
             on_frame(i + 1, len(views))
     res.seconds_per_frame = (time.perf_counter() - t0) / len(views)
@@ -256,6 +267,14 @@ def render_clip(scene, env: EnvironmentMap, views: Sequence[View], out_dir: str 
         d = denoise(clip, np.clip(np.stack(albedo), 0.0, 1.0), np.stack(normal), backend=denoiser,
                     fallback=denoiser_fallback, **kw)
         clip = np.clip(d.frames, 0.0, 1.0)
+        if corr_in:
+            from core.gen.scene_corrector import apply_corrector, frame_features
+
+            feats = [frame_features(f, gb, w2c) for f, (gb, w2c) in zip(clip, corr_in)]
+            if features_out is not None:
+                features_out.extend(feats)
+            if corrector is not None:
+                clip = np.stack([apply_corrector(corrector, x) for x in feats])
         res.frames = clip
         res.denoiser = d.backend
         res.denoiser_note = d.fallback_reason

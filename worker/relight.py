@@ -31,10 +31,12 @@ def _relight_env(ctx: JobContext, p: RelightRequest):
 
 def run_relight(ctx: JobContext, p: RelightRequest) -> None:
     """Relight: another environment map (rotation, exposure), local lights, object edits."""
-    from core.render.scenario import Scenario
+    from core.render.scenario import Scenario, scene_corrector
 
     run, common, _bundle = scenario_inputs(ctx, p)
-    sc = Scenario(envmap=_relight_env(ctx, p), rotation_deg=p.rotation_deg, exposure_ev=p.exposure_ev, **common)
+    corrector, _note = scene_corrector(run)  # fitted on the capture by the corrector stage, when it ran
+    sc = Scenario(envmap=_relight_env(ctx, p), rotation_deg=p.rotation_deg, exposure_ev=p.exposure_ev,
+                  corrector=corrector, **common)
     ctx.progress(0.05)
     render_and_upload(ctx, run, sc)
 

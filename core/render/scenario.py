@@ -218,6 +218,10 @@ class Scenario:
     """Video frame rate."""
     outputs: tuple[str, ...] = ("exr", "mp4", "png")
     """What to write."""
+    corrector: object = None
+    """The reconstruction's scene corrector (:class:`core.gen.scene_corrector.SceneCorrector`,
+    the ``corrector`` stage), applied to the denoised LDR frames; None: none
+    (:func:`scene_corrector` loads a run's)."""
 
     def __post_init__(self) -> None:
         if not self.views:
@@ -252,6 +256,11 @@ class Scenario:
             raise ConfigError(f"rays_per_pixel: must be an int in [1, 4096], got {self.rays_per_pixel!r}")
         if not isinstance(self.auto_exposure, AutoExposure):
             raise ConfigError(f"auto_exposure: expected an AutoExposure, got {type(self.auto_exposure).__name__}")
+        if self.corrector is not None:
+            from core.gen.scene_corrector import SceneCorrector
+
+            if not isinstance(self.corrector, SceneCorrector):
+                raise ConfigError(f"corrector: expected a SceneCorrector or None, got {type(self.corrector).__name__}")
         for name in ("lights", "street_lights"):
             for i, lt in enumerate(getattr(self, name)):
                 if not isinstance(lt, LightSpec):
@@ -485,6 +494,17 @@ def street_lights_for(bundle, graph=None, *, placement: str = "detect", position
     return lamp_lights(lamps, s, intensity_cd), lamps, note
 
 
+def scene_corrector(run):
+    """``(SceneCorrector or None, note)``: the corrector the run's ``corrector`` stage fitted on
+    its capture, or None with the reason."""
+    from core.gen.scene_corrector import load_corrector
+
+    path = run.stage_dir("corrector") / "corrector.pt"
+    if not run.is_done("corrector") or not path.is_file():
+        return None, "none: the reconstruction has no corrector stage"
+    return load_corrector(path), f"fitted on the capture ({path})"
+
+
 def night_scenario(run, *, sky_scale: float = 0.02, headlights: bool = True, headlight_intensity: float = 3000.0,
                    exposure_ev: float | None = None, street_lights: bool = True, street_light_placement: str = "detect",
                    street_light_positions=None, street_light_intensity: float | None = None,
@@ -601,9 +621,11 @@ class ScenarioResult:
 
 
 def render_scenario(graph, scenario: Scenario, out_dir: str | Path, *,
-                    on_frame: Callable[[int, int], None] | None = None) -> ScenarioResult:
-    """Apply the edits, place the lights, render the views with the PBR pass, denoise, write EXR /
-    MP4 / PNG into ``out_dir`` (:func:`core.relight.render_clip`)."""
+                    on_frame: Callable[[int, int], None] | None = None,
+                    features_out: list | None = None) -> ScenarioResult:
+    """Apply the edits, place the lights, render the views with the PBR pass, denoise, correct
+    (``scenario.corrector``), write EXR / MP4 / PNG into ``out_dir``
+    (:func:`core.relight.render_clip`; ``features_out`` receives the corrector's features)."""
     from core.relight import apply_edits, render_clip
 
     if not isinstance(scenario, Scenario):
@@ -635,7 +657,8 @@ def render_scenario(graph, scenario: Scenario, out_dir: str | Path, *,
         res = render_clip(g, env, list(scenario.views), out_dir, settings=settings, lights=lights,
                           outputs=list(scenario.outputs), denoiser=scenario.denoiser,
                           denoiser_fallback=scenario.denoiser_fallback, fps=scenario.fps, on_frame=on_frame,
-                          auto_exposure=scenario.auto_exposure if scenario.exposure_ev is None else None)
+                          auto_exposure=scenario.auto_exposure if scenario.exposure_ev is None else None,
+                          corrector=scenario.corrector, features_out=features_out)
     fired = []
     mean_rays = hook.mean_samples
     if scenario.adaptive_rays and mean_rays is not None and mean_rays < scenario.rays_per_pixel:
@@ -663,4 +686,4 @@ def render_scenario(graph, scenario: Scenario, out_dir: str | Path, *,
 
 __all__ = ["LightSpec", "Scenario", "ScenarioResult", "views_from_frames", "views_from_path", "views_from_capture", "load_path_json",
            "to_lights", "headlights", "render_scenario", "scene_sky", "street_lights_for", "STREET_LIGHT_PLACEMENTS", "request_problems",
-           "night_scenario", "FALLBACK_SKY_RADIANCE"]
+           "night_scenario", "FALLBACK_SKY_RADIANCE", "scene_corrector"]

@@ -41,7 +41,7 @@ from core.numerics import OPACITY_EPS
 from core.pbr.envmap import resample
 from core.pbr.render import PRODUCT_DIFFUSE, PRODUCT_INDIRECT_SPECULAR_RAYS, PRODUCT_MASKING, PRODUCT_OPAQUE_ABOVE
 from core.raster import RasterSettings, rasterize_gaussians
-from core.render.scenario import Scenario, render_scenario, views_from_frames
+from core.render.scenario import Scenario, render_scenario, scene_corrector, views_from_frames
 from core.stages.chain import RunDir
 from core.tonemap import hdr_to_ldr
 
@@ -80,6 +80,9 @@ class EvalSettings:
     object_solids: bool = True
     """Shadow rays meet the tracked objects' filled insides
     (:attr:`core.render.scenario.Scenario.object_solids`)."""
+    corrector: bool = True
+    """Apply the run's scene corrector (the ``corrector`` stage) to the re-render and relit frames,
+    as a relight request does; False: the denoised PBR frames as they are."""
     object_shadow_t_min_m: float = 0.05
     """The same for objects an edit placed (:attr:`core.render.scenario.Scenario.object_shadow_t_min_m`;
     the evaluation renders no edits, so only a request that passes edits sees it)."""
@@ -131,11 +134,12 @@ def frame_intrinsics(r, gt_layers: dict, height: int, width: int) -> dict:
 
 
 def render_pbr_frames(graph, bundle, env_map: np.ndarray, frames, settings: EvalSettings,
-                      views: dict | None = None) -> list[np.ndarray]:
+                      views: dict | None = None, corrector=None) -> list[np.ndarray]:
     """LDR frames ``[H, W, 3]`` in [0, 1] of ``graph`` lit by ``env_map`` (``[H, 2H, 3]`` linear)
     at the views of the bundle's ``frames``, through the path of a relight request
     (:func:`core.render.scenario.render_scenario`, denoiser included) with ``settings``.
-    ``views``: the bundle's views by frame id (default: made from the bundle)."""
+    ``views``: the bundle's views by frame id (default: made from the bundle); ``corrector``:
+    the run's scene corrector (:func:`core.render.scenario.scene_corrector`) or None."""
     s = settings
     views = views if views is not None else {v.name: v for v in views_from_frames(bundle, "all")}
     m = bundle.manifest
@@ -146,7 +150,7 @@ def render_pbr_frames(graph, bundle, env_map: np.ndarray, frames, settings: Eval
                   indirect_bounces=s.indirect_bounces, indirect_specular_rays=s.indirect_specular_rays,
                   diffuse=s.diffuse, masking=s.masking,
                   opaque_above=s.opaque_above, object_solids=s.object_solids,
-                  outputs=("png",))
+                  outputs=("png",), corrector=corrector)
     with tempfile.TemporaryDirectory(prefix="brdf-eval-") as tmp:
         r = render_scenario(graph, sc, tmp)
     return list(r.result.frames)
@@ -199,9 +203,11 @@ def evaluate_run(run_dir: str | Path, bundle=None, settings: EvalSettings | None
     # through the same path as a relight request (core.render.scenario), denoiser included
 
     all_views = {v.name: v for v in views_from_frames(b, "all")}
+    corrector, res["corrector"] = (scene_corrector(run) if s.corrector
+                                   else (None, "off (EvalSettings.corrector = False)"))
 
     def pbr_clip(env_map: np.ndarray, frames) -> list[np.ndarray]:
-        return render_pbr_frames(graph, b, env_map, frames, s, views=all_views)
+        return render_pbr_frames(graph, b, env_map, frames, s, views=all_views, corrector=corrector)
 
     if env_path is not None:
         env_rec = read_envmap(env_path)

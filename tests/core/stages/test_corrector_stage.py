@@ -1,0 +1,90 @@
+"""The corrector stage (core.stages.corrector) on the tiny Mitsuba street: it fits on the
+capture, resumes after an interruption, and every later render of the scene applies it."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from core.bundle import open_bundle
+from core.errors import ConfigError
+from core.render.scenario import Scenario, render_scenario, scene_corrector, views_from_frames
+from core.stages.chain import RunDir, profile_settings, run_pipeline, run_stage
+
+pytestmark = pytest.mark.mitsuba
+
+
+@pytest.fixture(scope="module")
+def joint_run(tiny_scene, tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("run") / "tiny"
+    run_pipeline(tiny_scene, out, "tiny", progress=False, stages="volume,generative_refine,volume2,pbr,joint")
+    return out
+
+
+class _Stop(Exception):
+    pass
+
+
+def test_the_stage_needs_a_recovered_map(tiny_scene, joint_run, tmp_path):
+    root = tmp_path / "r"
+    shutil.copytree(joint_run, root)
+    for s in ("pbr", "joint"):
+        shutil.rmtree(root / s)
+    with pytest.raises(ConfigError, match="pbr"):
+        run_stage("corrector", open_bundle(tiny_scene), RunDir(root), progress=False)
+
+
+def test_an_interrupted_corrector_resumes_and_ends_like_an_uninterrupted_one(tiny_scene, joint_run, tmp_path):
+    b = open_bundle(tiny_scene)
+    cfg = profile_settings("tiny", "corrector")
+    out = {}
+    for kind in ("straight", "interrupted"):
+        root = tmp_path / kind
+        shutil.copytree(joint_run, root)
+        run = RunDir(root)
+        if kind == "interrupted":
+            def stop(it, n, rec):
+                if it == cfg.checkpoint_every + 3:
+                    raise _Stop()
+
+            with pytest.raises(_Stop):
+                run_stage("corrector", b, run, cfg, progress=False, on_progress=stop)
+            assert (root / "corrector" / "resume" / "fit.pt").is_file() and not run.is_done("corrector")
+        out[kind] = run_stage("corrector", b, run, cfg, progress=False)
+    a, c = out["straight"], out["interrupted"]
+    assert a["resumed_from_iteration"] == 0 and c["resumed_from_iteration"] == cfg.checkpoint_every
+    np.testing.assert_allclose([h["loss"] for h in c["history"]], [h["loss"] for h in a["history"]],
+                               rtol=1e-3, atol=1e-5)  # the renders: float noise of the threaded kernels
+    assert a["in_sample"]["frames"] == len(a["views"]) >= 1
+    assert not (tmp_path / "straight" / "corrector" / "resume").exists()
+
+
+def test_a_relight_applies_the_fitted_corrector(tiny_scene, joint_run, tmp_path):
+    b = open_bundle(tiny_scene)
+    root = tmp_path / "run"
+    shutil.copytree(joint_run, root)
+    run = RunDir(root)
+    assert scene_corrector(run)[0] is None  # no stage, no corrector
+    run_stage("corrector", b, run, progress=False)
+    corrector, note = scene_corrector(run)
+    assert corrector is not None and "capture" in note
+    graph, _sky, _st = run.load_scene()
+    views = tuple(views_from_frames(b, "test")[:2])
+    m = b.manifest
+    kw = dict(views=views, envmap=np.full((16, 32, 3), 0.5, np.float32), base_exposure=m.ldr_exposure,
+              gamma=m.ldr_gamma, rays_per_pixel=4, denoiser="none", outputs=("png",))
+    feats: list = []
+    plain = render_scenario(graph, Scenario(**kw), tmp_path / "plain", features_out=feats).result.frames
+    fixed = render_scenario(graph, Scenario(**kw, corrector=corrector), tmp_path / "fixed").result.frames
+    assert len(feats) == len(views) and feats[0].shape[:2] == plain[0].shape[:2]
+    np.testing.assert_allclose(feats[0][..., :3], plain[0], atol=1e-6)  # features of the uncorrected frame
+    assert np.abs(fixed - plain).mean() > 1e-4  # the corrector changed the frames
+    assert np.isfinite(fixed).all() and fixed.min() >= 0 and fixed.max() <= 1
+    with pytest.raises(ConfigError, match="corrector"):
+        Scenario(**kw, corrector="not a corrector")
+    summary = json.loads((root / "corrector" / "summary.json").read_text())
+    assert summary["graph_stage"] == "joint" and summary["envmap_stage"] == "joint"
