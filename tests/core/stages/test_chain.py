@@ -146,7 +146,7 @@ def test_an_interrupted_stage_resumes_and_ends_like_an_uninterrupted_one(tiny_sc
         root = tmp_path / kind
         shutil.copytree(tiny_run, root)
         (root / "run.json").write_text(json.dumps({**json.loads((tiny_run / "run.json").read_text())}))
-        for s in STAGES[STAGES.index(stage):]:
+        for s in DEFAULT_STAGES[DEFAULT_STAGES.index(stage):]:
             shutil.rmtree(root / s)
         run = RunDir(root)
         cfg = profile_settings("tiny", stage)

@@ -675,8 +675,9 @@ def test_volume_stage_on_degenerate_lidar(tmp_path, mode):
                          ids=["all-black", "saturated-one-frame", "no-sky-masks"])
 def test_whole_chain_without_lidar_stays_finite(tmp_path, kw):
     """All five stages (the inverse model's priors, their depth as the initialisation, the
-    generative refinement, volume2, pbr, joint) on a bundle without LiDAR, tiny profile scaled
-    down: every logged loss, the refinement's summary and the final map are finite."""
+    generative refinement, volume2, pbr, joint) and the opt-in corrector on a bundle without
+    LiDAR, tiny profile scaled down: every logged loss, the refinement's summary, the final map
+    and the corrector's scores are finite."""
     from core.io.envmap_file import read_envmap
     from core.stages.chain import STAGES, run_pipeline
 
@@ -686,11 +687,14 @@ def test_whole_chain_without_lidar_stays_finite(tmp_path, kw):
           # coarse_height first: each override is validated as it is applied
           "pbr": {"coarse_height": 4, "env_height": 8, "pixels": 128, "eval_pixels": 128, "rays_per_pixel": 4,
                   "threads": 1},
-          "joint": {"pixels": 64, "rays_per_pixel": 4, "threads": 1}}
-    res = run_pipeline(path, tmp_path / "run", "tiny", progress=False, overrides=ov, iterations_scale=0.15)
+          "joint": {"pixels": 64, "rays_per_pixel": 4, "threads": 1},
+          "corrector": {"rays_per_pixel": 4, "threads": 1}}
+    res = run_pipeline(path, tmp_path / "run", "tiny", progress=False, overrides=ov, iterations_scale=0.15,
+                       stages=STAGES)
     assert list(res) == list(STAGES)
     assert any("no LiDAR" in s for s in res["volume"]["skipped"])
-    for name in ("volume", "volume2", "pbr", "joint"):
+    assert all(np.isfinite(v) for v in res["corrector"]["in_sample"].values())
+    for name in ("volume", "volume2", "pbr", "joint", "corrector"):
         assert res[name]["history"], name
         for rec in res[name]["history"]:
             assert np.isfinite(rec["loss"]), (name, rec)
