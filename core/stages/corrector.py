@@ -25,7 +25,8 @@ import torch
 from tqdm import tqdm
 
 from core.errors import ConfigError, FormatError
-from core.gen.scene_corrector import CorrectorSettings, apply_corrector, fit_corrector, save_corrector
+from core.gen.scene_corrector import (CorrectorSettings, SceneCorrector, apply_corrector, fit_corrector,
+                                      save_corrector)
 from core.io.envmap_file import read_envmap
 from core.metrics import psnr
 
@@ -113,7 +114,10 @@ def run_stage(ctx) -> dict:
                 raise FormatError(f"{f_feats}: unreadable corrector features ({exc}); delete it to re-render") from exc
         else:
             feats = _render_features(graph, b, read_envmap(env_path), views, cfg)
-            np.savez(f_feats, features=np.stack(feats))
+            tmp = f_feats.with_suffix(".tmp")  # renamed when whole: a kill mid-write leaves no bad cache
+            with open(tmp, "wb") as fh:
+                np.savez(fh, features=np.stack(feats))
+            tmp.replace(f_feats)
         t_render = time.perf_counter() - t0
         frames = {f.id: f for f in b.frames("train")}
         targets = [np.ascontiguousarray(b.load_image(frames[v.name]), np.float32) for v in views]
@@ -126,8 +130,6 @@ def run_stage(ctx) -> dict:
                 st = torch.load(f_state, map_location="cpu", weights_only=True)
             except Exception as exc:  # noqa: BLE001
                 raise FormatError(f"{f_state}: unreadable corrector checkpoint ({exc})") from exc
-            from core.gen.scene_corrector import SceneCorrector
-
             net = SceneCorrector(cfg.fit.width)
             net.load_state_dict(st["net"])
             opt_state, start, history = st["opt"], int(st["step"]), list(st["history"])
@@ -148,9 +150,7 @@ def run_stage(ctx) -> dict:
                             "history": history}, tmp)
                 tmp.replace(f_state)
 
-        # fit_corrector creates the network and optimiser; the callback needs them for checkpoints
-        from core.gen.scene_corrector import SceneCorrector
-
+        # the network and optimiser made here: the callback checkpoints them
         if net is None:
             torch.manual_seed(cfg.fit.seed)
             net = SceneCorrector(cfg.fit.width)
