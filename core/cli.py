@@ -259,6 +259,8 @@ def _render_and_report(run, a, scenario, kind: str) -> int:
     print(f"{kind}: {res.frames} frame(s) of the {stage} reconstruction, {res.lights} light(s), "
           f"{r.seconds_per_frame:.2f} s per frame, denoiser {r.denoiser}"
           + (f" ({r.denoiser_note})" if r.denoiser_note else ""))
+    if mt.get("corrector", "none") != "none":
+        print(f"  scene corrector: {mt['corrector']}")
     print(f"  exposure: {mt['exposure']} EV {mt['exposure_ev']:+.2f}"
           + (f" (limited by {mt['exposure_limited_by']})" if mt.get("exposure_limited_by") else ""))
     if scenario.street_lights:
@@ -500,7 +502,7 @@ def build_parser(extensions=()) -> argparse.ArgumentParser:
                     "scene; else the bundled scene)")
     rc.add_argument("--profile", default="quick", help="tiny | quick | benchmark | paper (default quick)")
     rc.add_argument("--stages", default=None, help="comma-separated subset of volume,generative_refine,volume2,"
-                    "pbr,joint (default all, in chain order)")
+                    "pbr,joint,corrector (default the paper's five, in chain order; the corrector only when named)")
     rc.add_argument("--resume", action="store_true", help="continue the run in --out (done stages are kept)")
     rc.add_argument("--out", default=None, help="run directory (default runs/<scene>_<profile>)")
     rc.add_argument("--set", action="append", metavar="STAGE.FIELD=VALUE", help="override a stage setting")
@@ -541,7 +543,8 @@ def build_parser(extensions=()) -> argparse.ArgumentParser:
     rl.add_argument("--rotation", type=float, default=0.0, help="rotate the map about +z, degrees")
     rl.add_argument("--no-shadows", action="store_true", help="no ray-traced visibility (faster, no shadows)")
     rl.add_argument("--corrector", default="auto", choices=["auto", "off"], help="auto: apply the scene corrector "
-                    "the run's corrector stage fitted on the capture, when it has one; off: the denoised PBR frames")
+                    "the run's corrector stage fitted on the capture, when it has one and the exposure is the "
+                    "capture's (--exposure 0); off: the denoised PBR frames")
     rl.set_defaults(fn=cmd_relight)
 
     nt = sub.add_parser("night", help="render a reconstruction at night (scaled sky, headlights, lights)")

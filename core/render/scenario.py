@@ -220,8 +220,9 @@ class Scenario:
     """What to write."""
     corrector: object = None
     """The reconstruction's scene corrector (:class:`core.gen.scene_corrector.SceneCorrector`,
-    the ``corrector`` stage), applied to the denoised LDR frames; None: none
-    (:func:`scene_corrector` loads a run's)."""
+    the ``corrector`` stage), applied to the denoised LDR frames when the render keeps the
+    capture's exposure (``exposure_ev`` 0: it was fitted there; otherwise not applied, and the
+    result's metrics say so); None: none (:func:`scene_corrector` loads a run's)."""
 
     def __post_init__(self) -> None:
         if not self.views:
@@ -653,12 +654,19 @@ def render_scenario(graph, scenario: Scenario, out_dir: str | Path, *,
                            indirect_specular_rays=scenario.indirect_specular_rays,
                            masking=scenario.masking, opaque_above=scenario.opaque_above,
                            object_solids=scenario.object_solids)
+    corrector, corrector_note = scenario.corrector, "none"
+    if corrector is not None:
+        corrector_note = "applied (fitted on the capture)"
+        if scenario.exposure_ev != 0.0:
+            corrector = None
+            corrector_note = (f"not applied: fitted at the capture's exposure, this render's is "
+                              f"{'automatic' if scenario.exposure_ev is None else f'{scenario.exposure_ev:+g} EV'}")
     with ClipHook(reuse_across_clips=scenario.reuse_visibility_across_requests) as hook:
         res = render_clip(g, env, list(scenario.views), out_dir, settings=settings, lights=lights,
                           outputs=list(scenario.outputs), denoiser=scenario.denoiser,
                           denoiser_fallback=scenario.denoiser_fallback, fps=scenario.fps, on_frame=on_frame,
                           auto_exposure=scenario.auto_exposure if scenario.exposure_ev is None else None,
-                          corrector=scenario.corrector, features_out=features_out)
+                          corrector=corrector, features_out=features_out)
     fired = []
     mean_rays = hook.mean_samples
     if scenario.adaptive_rays and mean_rays is not None and mean_rays < scenario.rays_per_pixel:
@@ -681,7 +689,8 @@ def render_scenario(graph, scenario: Scenario, out_dir: str | Path, *,
                            "exposure_limited_by": res.exposure_note,
                            "street_lights": [[round(float(x), 3) for x in lt.position] for lt in scenario.street_lights],
                            "mean_rays_per_pixel": None if mean_rays is None else round(mean_rays, 2),
-                           "setup_seconds": round(hook.setup_seconds, 3), "skips_fired": fired})
+                           "setup_seconds": round(hook.setup_seconds, 3), "skips_fired": fired,
+                           "corrector": corrector_note})
 
 
 __all__ = ["LightSpec", "Scenario", "ScenarioResult", "views_from_frames", "views_from_path", "views_from_capture", "load_path_json",

@@ -79,7 +79,14 @@ def test_a_relight_applies_the_fitted_corrector(tiny_scene, joint_run, tmp_path)
               gamma=m.ldr_gamma, rays_per_pixel=4, denoiser="none", outputs=("png",))
     feats: list = []
     plain = render_scenario(graph, Scenario(**kw), tmp_path / "plain", features_out=feats).result.frames
-    fixed = render_scenario(graph, Scenario(**kw, corrector=corrector), tmp_path / "fixed").result.frames
+    res = render_scenario(graph, Scenario(**kw, corrector=corrector), tmp_path / "fixed")
+    fixed = res.result.frames
+    assert res.metrics["corrector"].startswith("applied")
+    # fitted at the capture's exposure: another exposure renders without it, and says so
+    auto = render_scenario(graph, Scenario(**kw, corrector=corrector, exposure_ev=None), tmp_path / "auto")
+    assert auto.metrics["corrector"].startswith("not applied")
+    plain_auto = render_scenario(graph, Scenario(**kw, exposure_ev=None), tmp_path / "plain_auto").result.frames
+    np.testing.assert_allclose(auto.result.frames, plain_auto, atol=1e-6)
     assert len(feats) == len(views) and feats[0].shape[:2] == plain[0].shape[:2]
     np.testing.assert_allclose(feats[0][..., :3], plain[0], atol=1e-6)  # features of the uncorrected frame
     assert np.abs(fixed - plain).mean() > 1e-4  # the corrector changed the frames
@@ -88,3 +95,25 @@ def test_a_relight_applies_the_fitted_corrector(tiny_scene, joint_run, tmp_path)
         Scenario(**kw, corrector="not a corrector")
     summary = json.loads((root / "corrector" / "summary.json").read_text())
     assert summary["graph_stage"] == "joint" and summary["envmap_stage"] == "joint"
+
+
+def test_the_relight_command_applies_it_at_the_capture_exposure_and_can_turn_it_off(tiny_scene, joint_run, tmp_path,
+                                                                                      capsys):
+    from core.cli import main
+
+    root = tmp_path / "run"
+    shutil.copytree(joint_run, root)
+    assert main(["reconstruct", "--out", str(root), "--profile", "tiny", "--resume", "--stages", "corrector",
+                 "--quiet"]) == 0
+    base = ["relight", str(root), "--envmap", "sunset", "--stop", "1", "--rays", "4", "--denoiser", "none"]
+    assert main(base + ["--exposure", "0", "--out", str(tmp_path / "on")]) == 0
+    assert "scene corrector: applied" in capsys.readouterr().out
+    assert main(base + ["--exposure", "0", "--corrector", "off", "--out", str(tmp_path / "off")]) == 0
+    out = capsys.readouterr().out
+    assert "scene corrector: off" in out and "applied" not in out
+    assert main(base + ["--out", str(tmp_path / "auto")]) == 0  # automatic exposure: not applied, said so
+    assert "not applied" in capsys.readouterr().out
+    from core.io.images import read_image
+
+    on, off = read_image(tmp_path / "on" / "preview.png"), read_image(tmp_path / "off" / "preview.png")
+    assert np.abs(np.asarray(on, np.float32) - np.asarray(off, np.float32)).mean() > 1e-4
