@@ -50,8 +50,8 @@ from core.errors import ConfigError, FormatError
 #: The paper's stages in chain order, then the corrector (a departure: ``docs/DESIGN.md``).
 STAGES = ("volume", "generative_refine", "volume2", "pbr", "joint", "corrector")
 #: What runs when no stages are named: the paper's five. The corrector is asked for by name
-#: (``--stages ...,corrector``): on two development streets it raised the re-render by 1.6 / 0.7 dB
-#: but relighting by +0.7 / -0.15 dB, and made relit FLIP worse on both
+#: (``--stages ...,corrector``): on three development streets it raised the re-render by 0.7-4.0 dB
+#: but relighting by +0.7 / -0.15 / -0.08 dB, and made relit FLIP worse on all three
 #: (``benchmarks/results/corrector.json``).
 DEFAULT_STAGES = STAGES[:5]
 #: Profiles: ``tiny`` (tests, CI), ``quick`` (the default: the knee of the run-time-against-error
