@@ -52,6 +52,7 @@ if str(ROOT) not in sys.path:
 
 from core.bundle import open_bundle  # noqa: E402
 from core.camera import Camera  # noqa: E402
+from core.gen.scene_corrector import SceneCorrector  # noqa: E402
 from core.io.envmap_file import read_envmap  # noqa: E402
 from core.metrics import psnr, ssim  # noqa: E402
 from core.numerics import OPACITY_EPS, safe_normalize  # noqa: E402
@@ -81,26 +82,14 @@ def gbuffer_features(graph, bundle, frame, times) -> np.ndarray:
     return torch.cat(feats, -1).numpy().astype(np.float32)
 
 
-class Corrector(torch.nn.Module):
-    """Dilated CNN: [B, C, H, W] features -> [B, 3, H, W] residual on the OIDN frame."""
-
-    def __init__(self, channels: int, width: int = 32):
-        super().__init__()
-        layers, c = [], channels
-        for d in (1, 2, 4, 8, 8, 4, 2, 1):
-            layers += [torch.nn.Conv2d(c, width, 3, padding=d, dilation=d), torch.nn.GELU()]
-            c = width
-        self.body = torch.nn.Sequential(*layers)
-        self.head = torch.nn.Conv2d(width, 3, 1)
-        torch.nn.init.zeros_(self.head.weight)
-        torch.nn.init.zeros_(self.head.bias)
-
-    def forward(self, x):
-        return x[:, :3] + self.head(self.body(x))
+def Corrector(channels: int, width: int = 32) -> SceneCorrector:
+    """The product's corrector network (:class:`core.gen.scene_corrector.SceneCorrector`) over
+    ``channels`` input features: [B, C, H, W] -> the OIDN frame plus a residual, [B, 3, H, W]."""
+    return SceneCorrector(width, channels)
 
 
 def fit(inputs: list[np.ndarray], targets: list[np.ndarray], steps: int, crop: int, seed: int,
-        width: int = 32) -> Corrector:
+        width: int = 32) -> SceneCorrector:
     """The corrector (``width`` channels) fitted by Adam on random crops of ``inputs`` ([H, W, C])
     against ``targets`` ([H, W, 3] LDR), L1 loss."""
     torch.manual_seed(seed)
@@ -126,7 +115,7 @@ def fit(inputs: list[np.ndarray], targets: list[np.ndarray], steps: int, crop: i
     return net
 
 
-def apply(net: Corrector, x: np.ndarray) -> np.ndarray:
+def apply(net: SceneCorrector, x: np.ndarray) -> np.ndarray:
     with torch.no_grad():
         y = net(torch.from_numpy(x).permute(2, 0, 1)[None])[0].permute(1, 2, 0)
     return y.clamp(0, 1).numpy()

@@ -70,11 +70,12 @@ class CorrectorSettings:
 
 
 class SceneCorrector(torch.nn.Module):
-    """Dilated CNN: features ``[B, 13, H, W]`` -> corrected LDR ``[B, 3, H, W]`` (module docstring)."""
+    """Dilated CNN: features ``[B, C, H, W]`` (the LDR frame first; ``C`` = ``channels``, the
+    13 :data:`FEATURES` by default) -> corrected LDR ``[B, 3, H, W]`` (module docstring)."""
 
-    def __init__(self, width: int = 32):
+    def __init__(self, width: int = 32, channels: int = len(FEATURES)):
         super().__init__()
-        layers, c = [], len(FEATURES)
+        layers, c = [], channels
         for d in DILATIONS:
             layers += [torch.nn.Conv2d(c, width, 3, padding=d, dilation=d), torch.nn.GELU()]
             c = width

@@ -133,8 +133,13 @@ def run_stage(ctx) -> dict:
             net = SceneCorrector(cfg.fit.width)
             net.load_state_dict(st["net"])
             opt_state, start, history = st["opt"], int(st["step"]), list(st["history"])
+        if net is None:
+            torch.manual_seed(cfg.fit.seed)
+            net = SceneCorrector(cfg.fit.width)
+        opt = torch.optim.Adam(net.parameters(), lr=cfg.fit.lr)
+        if opt_state is not None:
+            opt.load_state_dict(opt_state)
         bar = tqdm(total=cfg.fit.steps, initial=start, desc="corrector", unit="it", disable=not ctx.progress)
-        box: dict = {}
 
         def on_step(step: int, loss: float) -> None:
             bar.update(1)
@@ -144,21 +149,12 @@ def run_stage(ctx) -> dict:
                 bar.set_postfix(loss=f"{loss:.4f}")
             if ctx.on_progress is not None:
                 ctx.on_progress(step, cfg.fit.steps, rec)
-            if step % cfg.checkpoint_every == 0 and step < cfg.fit.steps and "net" in box:
+            if step % cfg.checkpoint_every == 0 and step < cfg.fit.steps:
                 tmp = f_state.with_suffix(".tmp")
-                torch.save({"net": box["net"].state_dict(), "opt": box["opt"].state_dict(), "step": step,
+                torch.save({"net": net.state_dict(), "opt": opt.state_dict(), "step": step,
                             "history": history}, tmp)
                 tmp.replace(f_state)
 
-        # the network and optimiser made here: the callback checkpoints them
-        if net is None:
-            torch.manual_seed(cfg.fit.seed)
-            net = SceneCorrector(cfg.fit.width)
-        box["net"] = net
-        opt = torch.optim.Adam(net.parameters(), lr=cfg.fit.lr)
-        if opt_state is not None:
-            opt.load_state_dict(opt_state)
-        box["opt"] = opt
         net, opt = fit_corrector([feats[i] for i in fit_idx], [targets[i] for i in fit_idx], cfg.fit, net=net,
                                  optimizer=opt, start_step=start, on_step=on_step)
         bar.close()
