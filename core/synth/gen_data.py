@@ -31,7 +31,10 @@ whose rotation is in ``held_out_rotations`` into the evaluation set, never into 
 
 :class:`ClipDataset` draws training batches: B windows of F consecutive frames, a random crop
 (same position in every frame of a window), optional horizontal flip (x of camera-frame normals
-and env directions negated with the pixels).
+and env directions negated with the pixels). With ``rare_fraction`` > 0 (inverse model), that
+fraction of the batch's windows is the rarest-material crop among ``rare_candidates`` random ones
+(:func:`rarity_table`): windows, glass, metal-clad facades and paint are a few percent of the
+pixels, road and plain walls most of them.
 """
 
 from __future__ import annotations
@@ -47,6 +50,7 @@ import torch
 from core.bundle import open_bundle
 from core.errors import ConfigError, ShapeError
 from core.gen import encoding as E
+from core.gen.contract import GBUFFER_CHANNELS, GBUFFER_SLICES
 from core.gen.gbuffer_ensemble import NORMAL_X, VIEW_X
 from core.io.exr import read_exr
 from core.tonemap import hdr_to_ldr
@@ -184,6 +188,45 @@ def load_clips(root: str | Path, settings: DataSettings | None = None, kinds=("f
     return clips
 
 
+#: Roughness bin edges of the material bins of :func:`material_bins` (five bins of 0.2); the
+#: metallic splits each bin in two at 0.5, so there are ten bins.
+RARITY_ROUGH_EDGES = (0.2, 0.4, 0.6, 0.8)
+RARITY_BINS = 2 * (len(RARITY_ROUGH_EDGES) + 1)
+_ROUGH = GBUFFER_SLICES["roughness"].start
+_METAL = GBUFFER_SLICES["metallic"].start
+
+
+def material_bins(gbuffer: np.ndarray) -> np.ndarray:
+    """Material bin per pixel of G-buffers in the data space, ``gbuffer: [..., 9, H, W]`` ->
+    ``[..., H, W]`` int64 in ``[0, RARITY_BINS)``: roughness bin (edges ``RARITY_ROUGH_EDGES``)
+    times two, plus one where metallic >= 0.5."""
+    g = np.asarray(gbuffer)
+    if g.ndim < 3 or g.shape[-3] != GBUFFER_CHANNELS:
+        raise ShapeError(f"gbuffer: expected [..., {GBUFFER_CHANNELS}, H, W], got {g.shape}")
+    rough = (g[..., _ROUGH, :, :] + 1) / 2
+    metal = (g[..., _METAL, :, :] + 1) / 2
+    return np.digitize(rough, RARITY_ROUGH_EDGES).astype(np.int64) * 2 + (metal >= 0.5)
+
+
+def rarity_table(clips: list[list[dict]], stride: int = 4) -> np.ndarray:
+    """Weight per material bin ``[RARITY_BINS]``: ``freq ** -0.5`` over the non-sky pixels of
+    every frame of ``clips`` (every ``stride``-th pixel in x and y), scaled so that the
+    pixel-weighted mean weight is 1; a bin no pixel falls in weighs 0."""
+    if stride < 1:
+        raise ConfigError(f"stride: must be >= 1, got {stride}")
+    counts = np.zeros(RARITY_BINS)
+    for clip in clips:
+        for f in clip:
+            b = material_bins(f["gbuffer"][:, ::stride, ::stride])
+            keep = f["sky"][0, ::stride, ::stride] < 0.5
+            counts += np.bincount(b[keep], minlength=RARITY_BINS)
+    if counts.sum() == 0:
+        raise ConfigError("rarity_table: the clips have no non-sky pixel")
+    freq = counts / counts.sum()
+    w = np.where(freq > 0, 1.0 / np.sqrt(np.maximum(freq, 1e-12)), 0.0)
+    return w / float((w * freq).sum())
+
+
 class ClipDataset:
     """Random windows of F frames with random crops from a list of clips (see module docstring).
 
@@ -192,9 +235,16 @@ class ClipDataset:
     [B, F, C, crop, crop] except the env encodings [B, F, 3, 64, 128]."""
 
     def __init__(self, clips: list[list[dict]], kind: str, frames: int = 1, crop: int = 64, flip: bool = True,
-                 view: bool = False):
+                 view: bool = False, rare_fraction: float = 0.0, rare_candidates: int = 4):
         if kind not in ("forward_denoiser", "inverse_gbuffer"):
             raise ConfigError(f"kind: no dataset for {kind!r}")
+        if not 0.0 <= rare_fraction <= 1.0:
+            raise ConfigError(f"rare_fraction: must be in [0, 1], got {rare_fraction!r}")
+        if rare_candidates < 2:
+            raise ConfigError(f"rare_candidates: must be >= 2, got {rare_candidates!r}")
+        if rare_fraction > 0 and kind != "inverse_gbuffer":
+            raise ConfigError(f"rare_fraction: only the inverse model's data has materials to weigh, not {kind!r}")
+        self.rare_fraction, self.rare_candidates = rare_fraction, rare_candidates
         if crop % 8:
             raise ConfigError(f"crop: must be a multiple of 8, got {crop}")
         self.kind, self.frames, self.crop, self.flip, self.view = kind, frames, crop, flip, view
@@ -210,6 +260,7 @@ class ClipDataset:
         if missing:
             raise ConfigError(f"clips lack {missing} (load them with kinds including "
                               f"{'forward' if kind == 'forward_denoiser' else 'inverse'})")
+        self.rarity = rarity_table(self.clips) if rare_fraction > 0 else None
 
     def __len__(self) -> int:
         return sum(len(c) - self.frames + 1 for c in self.clips)
@@ -217,16 +268,37 @@ class ClipDataset:
     def sample(self, batch: int, rng: np.random.Generator) -> dict[str, torch.Tensor]:
         out: dict[str, list] = {}
         for _ in range(batch):
-            clip = self.clips[rng.integers(len(self.clips))]
-            t0 = int(rng.integers(len(clip) - self.frames + 1))
-            h, w = clip[0]["sky"].shape[1:]
-            y, x = int(rng.integers(h - self.crop + 1)), int(rng.integers(w - self.crop + 1))
-            flip = self.flip and bool(rng.integers(2))
+            clip, t0, y, x, flip = self._draw(rng)
+            if self.rarity is not None and rng.random() < self.rare_fraction:
+                cands = [(clip, t0, y, x, flip)] + [self._draw(rng) for _ in range(self.rare_candidates - 1)]
+                clip, t0, y, x, flip = max(cands, key=self._crop_rarity)
             win = clip[t0:t0 + self.frames]
             items = self._items(win, y, x, flip)
             for k, v in items.items():
                 out.setdefault(k, []).append(v)
         return {k: torch.from_numpy(np.stack(v)) for k, v in out.items()}
+
+    def _draw(self, rng: np.random.Generator) -> tuple:
+        """A random window: (clip, first frame, crop y, crop x, flip)."""
+        clip = self.clips[rng.integers(len(self.clips))]
+        t0 = int(rng.integers(len(clip) - self.frames + 1))
+        h, w = clip[0]["sky"].shape[1:]
+        y, x = int(rng.integers(h - self.crop + 1)), int(rng.integers(w - self.crop + 1))
+        flip = self.flip and bool(rng.integers(2))
+        return clip, t0, y, x, flip
+
+    def _crop_rarity(self, cand: tuple) -> float:
+        """Mean material weight (:func:`rarity_table`) over the non-sky pixels of a window's crop
+        (0 for an all-sky crop)."""
+        clip, t0, y, x, _ = cand
+        c = self.crop
+        num = den = 0.0
+        for f in clip[t0:t0 + self.frames]:
+            keep = f["sky"][0, y:y + c, x:x + c] < 0.5
+            w = self.rarity[material_bins(f["gbuffer"][:, y:y + c, x:x + c])]
+            num += float(w[keep].sum())
+            den += float(keep.sum())
+        return num / den if den > 0 else 0.0
 
     def _items(self, win, y, x, flip) -> dict[str, np.ndarray]:
         c = self.crop

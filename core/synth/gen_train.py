@@ -101,6 +101,12 @@ class TrainSettings:
     Ignored when a checkpoint is resumed."""
     data: DataSettings = field(default_factory=DataSettings)
     """How bundles become tensors (forward source, held-out seeds/rotations)."""
+    rare_fraction: float = 0.0
+    """Inverse model only: fraction of a batch's windows drawn as the rarest-material crop of
+    ``rare_candidates`` random ones (:class:`core.synth.gen_data.ClipDataset`); 0 = uniform crops
+    (every run before 2026-12-05)."""
+    rare_candidates: int = 4
+    """Random windows a rare-material draw chooses from (>= 2)."""
     view: bool = False
     """Inverse model only: also condition on the capture's camera (the contract's optional
     ``view`` input: per-pixel ray and world up, camera frame). With ``init_from`` a model made
@@ -115,6 +121,9 @@ class TrainSettings:
                               f"{self.paired_fraction}")
         if self.checkpoint_every < 1 or self.threads < 1:
             raise ConfigError("checkpoint_every and threads must be >= 1")
+        if not 0.0 <= self.rare_fraction <= 1.0 or self.rare_candidates < 2:
+            raise ConfigError(f"rare_fraction / rare_candidates: need [0, 1] / >= 2, got "
+                              f"{self.rare_fraction!r} / {self.rare_candidates!r}")
         if not isinstance(self.view, bool):
             raise ConfigError(f"view: must be a bool, got {self.view!r}")
 
@@ -284,7 +293,8 @@ def train_model(kind: str, data_dirs, out_dir: str | Path, steps: int, *, settin
             clips = [c for d in train_dirs for c in load_clips(d, s.data, kinds)]
         if s.view and kind != "inverse_gbuffer":
             raise ConfigError(f"view: only the inverse model takes the camera input, not {kind!r}")
-        ds = ClipDataset(clips, kind, s.frames, s.crop, view=s.view)
+        ds = ClipDataset(clips, kind, s.frames, s.crop, view=s.view, rare_fraction=s.rare_fraction,
+                         rare_candidates=s.rare_candidates)
 
         torch.manual_seed(s.seed)
         model = build_model(kind, s.unet, s.sigma_data, s.frames, view=s.view)
@@ -368,7 +378,10 @@ def train_model(kind: str, data_dirs, out_dir: str | Path, steps: int, *, settin
                           "forward_source": s.data.forward_source, "windows_available": len(ds),
                           "steps": step, "batch": s.batch, "crop": s.crop, "lr": s.lr,
                           "wall_s_this_run": round(wall, 1), "final_loss_mean50": float(np.mean(losses[-50:])),
-                          "ema_decay": s.ema_decay, "paired_fraction": s.paired_fraction},
+                          "ema_decay": s.ema_decay, "paired_fraction": s.paired_fraction,
+                          **({"rare_fraction": s.rare_fraction, "rare_candidates": s.rare_candidates,
+                              "rarity_table": [round(float(w), 4) for w in ds.rarity]}
+                             if s.rare_fraction > 0 else {})},
                 metrics=metrics)
         return TrainResult(kind, step, losses, wall, ckpt, onnx_path, card_path, metrics)
     finally:

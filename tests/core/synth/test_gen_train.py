@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from core.errors import ConfigError
+from core.errors import ConfigError, ShapeError
 from core.gen.contract import GBUFFER_SLICES
 from core.gen.nets import UNetSettings
 from core.gen.runtime import load_model
@@ -174,3 +174,64 @@ def test_dataset_camera_input_follows_the_flip(clips):
     assert np.allclose(flipped["x0"][0, 5], -plain["x0"][0, 5][:, ::-1])  # normal x, as before
     with pytest.raises(ConfigError, match="view"):
         ClipDataset([[{k: f[k] for k in f if k != "view"} for f in c] for c in clips], "inverse_gbuffer", view=True)
+
+
+def _material_clip(h=32, w=64, frames=2):
+    """A clip whose frames are road-like (roughness 0.9, dielectric) except a metal-glossy block
+    (roughness 0.1, metallic 1) in the right eighth of the frame, and sky in the top row."""
+    out = []
+    for _ in range(frames):
+        g = np.zeros((9, h, w), np.float32)
+        g[3], g[4] = 0.9 * 2 - 1, -1.0
+        g[3, :, -w // 8:], g[4, :, -w // 8:] = 0.1 * 2 - 1, 1.0
+        sky = np.zeros((1, h, w), np.float32)
+        sky[0, 0] = 1
+        out.append({"gbuffer": g, "rgb": np.zeros((3, h, w), np.float32), "sky": sky})
+    return [out]
+
+
+def test_rarity_table_weighs_rare_materials_up():
+    from core.synth.gen_data import RARITY_BINS, material_bins, rarity_table
+
+    clip = _material_clip()
+    table = rarity_table(clip, stride=1)
+    assert table.shape == (RARITY_BINS,)
+    b = material_bins(clip[0][0]["gbuffer"])
+    road, metal = b[5, 0], b[5, -1]
+    assert (road, metal) == (8, 1)  # roughness bin 4 (0.9) x 2 + dielectric; bin 0 x 2 + metal
+    f_metal = 1 / 8
+    w_road, w_metal = 1 / np.sqrt(1 - f_metal), 1 / np.sqrt(f_metal)
+    norm = (1 - f_metal) * w_road + f_metal * w_metal
+    assert table[road] == pytest.approx(w_road / norm) and table[metal] == pytest.approx(w_metal / norm)
+    assert np.count_nonzero(table) == 2  # bins no pixel falls in weigh nothing
+    with pytest.raises(ShapeError, match="gbuffer"):
+        material_bins(np.zeros((8, 4, 4)))
+
+
+def test_rare_crops_draw_more_rare_material():
+    clip = _material_clip()
+
+    def metal_share(fraction):
+        ds = ClipDataset(clip, "inverse_gbuffer", crop=8, flip=False, rare_fraction=fraction)
+        x0 = ds.sample(400, np.random.default_rng(3))["x0"].numpy()
+        return float((x0[:, :, 4] > 0).mean())
+
+    uniform, rare = metal_share(0.0), metal_share(1.0)
+    assert 0.05 < uniform < 0.2  # about the block's share of the crop positions
+    assert rare > 2 * uniform
+    with pytest.raises(ConfigError, match="rare_fraction"):
+        ClipDataset(clip, "inverse_gbuffer", rare_fraction=1.5)
+    with pytest.raises(ConfigError, match="rare_fraction"):
+        ClipDataset(load_clips(SCENE, DataSettings(max_frames_per_clip=2), kinds=("forward",)), "forward_denoiser",
+                    rare_fraction=0.5)
+    with pytest.raises(ConfigError, match="rare_candidates"):
+        ClipDataset(clip, "inverse_gbuffer", rare_fraction=0.5, rare_candidates=1)
+
+
+def test_rare_crop_training_records_its_table(clips, tmp_path):
+    s = TrainSettings(batch=2, crop=16, frames=1, lr=2e-3, warmup=2, threads=1, unet=TINY_NET, rare_fraction=0.5)
+    r = train_model("inverse_gbuffer", [SCENE], tmp_path / "inv", 4, settings=s, clips=clips)
+    card = json.loads(Path(r.card_path).read_text())["training"]
+    assert card["rare_fraction"] == 0.5 and len(card["rarity_table"]) == 10 and max(card["rarity_table"]) > 1
+    with pytest.raises(ConfigError, match="rare_fraction"):
+        TrainSettings(rare_fraction=-0.1)
