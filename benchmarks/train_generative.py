@@ -287,7 +287,7 @@ def eval_streets(onnx: Path, dirs, threads: int) -> dict:
 def finetune_randomised(rand: Path, old: Path, work: Path, init_from: Path, steps: int, eval_every: int, lr: float,
                         p_mean: float, batch: int, crop: int, threads: int, mix_old: tuple[str, ...] = (),
                         view: bool = False, shipped_model: Path | None = None, old_repeat: int = 1,
-                        rare_fraction: float = 0.0) -> dict:
+                        rare_fraction: float = 0.0, rare_loss_max: float = 0.0) -> dict:
     """Fine-tune the inverse model on the randomised train split (plus the old generator's
     training streets ``mix_old`` under ``old``, so that the model keeps what it knew of the
     streets the pipeline's default scene comes from); every ``eval_every`` steps export a snapshot
@@ -299,7 +299,8 @@ def finetune_randomised(rand: Path, old: Path, work: Path, init_from: Path, step
     randomised one (batches pick clips uniformly).
 
     ``rare_fraction``: that fraction of each batch's crops is the rarest-material crop of four
-    (``TrainSettings.rare_fraction``; windows, glass, metal-clad facades over road and walls).
+    (``TrainSettings.rare_fraction``; windows, glass, metal-clad facades over road and walls);
+    ``rare_loss_max``: each pixel's loss weighed by its material's rarity, clipped to that factor.
 
     ``shipped_model`` (default ``init_from``) is the product's model, the "before" of the ``ood``
     step; it is copied once to ``<work>/inverse_randomised_shipped.onnx``. A fine-tune that starts
@@ -313,7 +314,7 @@ def finetune_randomised(rand: Path, old: Path, work: Path, init_from: Path, step
     mix_tag = (f"_mix{len(mix_old)}" + (f"x{old_repeat}" if old_repeat > 1 else "")) if mix_old else ""
     init_tag = "" if Path(init_from).resolve() == shipped_model.resolve() else f"_from_{Path(init_from).stem}"
     p_tag = "" if p_mean == 2.0 else f"_p{p_mean:g}"  # 2.0: the first runs' value, untagged
-    rare_tag = f"_rare{rare_fraction:g}" if rare_fraction > 0 else ""
+    rare_tag = (f"_rare{rare_fraction:g}" if rare_fraction > 0 else "") + (f"_wloss{rare_loss_max:g}" if rare_loss_max > 0 else "")
     out = work / f"inverse_randomised_lr{lr:g}{p_tag}{mix_tag}{'_view' if view else ''}{rare_tag}{init_tag}"  # one run per variant
     snaps = out / "snapshots"
     snaps.mkdir(parents=True, exist_ok=True)
@@ -343,7 +344,7 @@ def finetune_randomised(rand: Path, old: Path, work: Path, init_from: Path, step
     log.update({"init_from": str(init), "init_is_shipped": not init_tag, "train": [d.name for d in train_dirs], "val": [d.name for d in val],
                 "old_val": [d.name for d in old_val], "lr": lr, "p_mean": p_mean, "batch": batch, "crop": crop,
                 "threads": threads, "mix_old": list(mix_old), "old_repeat": old_repeat, "view": view,
-                "rare_fraction": rare_fraction, "score": "val_score (benchmarks/train_generative.py)"})
+                "rare_fraction": rare_fraction, "rare_loss_max": rare_loss_max, "score": "val_score (benchmarks/train_generative.py)"})
     done = {e["step"] for e in log["entries"]}
 
     def evaluate(step, onnx, extra):
@@ -360,7 +361,7 @@ def finetune_randomised(rand: Path, old: Path, work: Path, init_from: Path, step
         evaluate(0, init, {"note": "the start model (init_from)" + ("" if init_tag else ": the shipped model")})
     s = replace(TrainSettings(), data=DataSettings(forward_source="degrade"), batch=batch, crop=crop, frames=1,
                 checkpoint_every=100, threads=threads, p_mean=p_mean, lr=lr, init_from=str(init), view=view,
-                rare_fraction=rare_fraction)
+                rare_fraction=rare_fraction, rare_loss_max=rare_loss_max)
     clips = None
     for n in range(eval_every, steps + 1, eval_every):
         snap = snaps / f"inverse_gbuffer_{n:06d}.onnx"
@@ -600,6 +601,9 @@ def main(argv=None) -> int:
     ap.add_argument("--rare-fraction", type=float, default=0.0,
                     help="inverse-randomised: fraction of each batch's crops drawn as the rarest-material crop of "
                          "four (windows, glass, metal-clad facades; TrainSettings.rare_fraction)")
+    ap.add_argument("--rare-loss-max", type=float, default=0.0,
+                    help="inverse-randomised: weigh each pixel's loss by its material's rarity, clipped to "
+                         "[1/X, X] (0: unweighted; TrainSettings.rare_loss_max)")
     ap.add_argument("--mix-old", type=int, default=0,
                     help="inverse-randomised: also train on the old generator's first N training streets "
                          "(s100, s101, ... under --old-data; the mix-old step generates them)")
@@ -620,7 +624,7 @@ def main(argv=None) -> int:
                       p_mean=a.p_mean if a.p_mean is not None else 2.0, batch=a.batch,
                       crop=96 if a.crop == 64 else a.crop, threads=a.threads,
                       mix_old=tuple(name for name, *_ in scene_plan(a.seeds))[:a.mix_old], view=a.view,
-                      old_repeat=a.old_repeat, rare_fraction=a.rare_fraction)
+                      old_repeat=a.old_repeat, rare_fraction=a.rare_fraction, rare_loss_max=a.rare_loss_max)
             lr = a.lr or 1e-4
             if a.lr_pilot:  # each learning rate for --pilot-steps; the best on val continues to --steps
                 logs = {r: finetune_randomised(**ft, steps=a.pilot_steps, eval_every=a.pilot_steps // 2, lr=r)

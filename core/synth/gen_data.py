@@ -34,7 +34,10 @@ whose rotation is in ``held_out_rotations`` into the evaluation set, never into 
 and env directions negated with the pixels). With ``rare_fraction`` > 0 (inverse model), that
 fraction of the batch's windows is the rarest-material crop among ``rare_candidates`` random ones
 (:func:`rarity_table`): windows, glass, metal-clad facades and paint are a few percent of the
-pixels, road and plain walls most of them.
+pixels, road and plain walls most of them. With ``rare_loss_max`` > 0 each inverse sample also
+carries ``pixel_weight [F, 1, crop, crop]``: its pixels' material weights clipped to
+``[1 / rare_loss_max, rare_loss_max]`` (sky 1), which :func:`core.synth.gen_train.edm_loss`
+multiplies into the loss.
 """
 
 from __future__ import annotations
@@ -235,16 +238,20 @@ class ClipDataset:
     [B, F, C, crop, crop] except the env encodings [B, F, 3, 64, 128]."""
 
     def __init__(self, clips: list[list[dict]], kind: str, frames: int = 1, crop: int = 64, flip: bool = True,
-                 view: bool = False, rare_fraction: float = 0.0, rare_candidates: int = 4):
+                 view: bool = False, rare_fraction: float = 0.0, rare_candidates: int = 4,
+                 rare_loss_max: float = 0.0):
         if kind not in ("forward_denoiser", "inverse_gbuffer"):
             raise ConfigError(f"kind: no dataset for {kind!r}")
         if not 0.0 <= rare_fraction <= 1.0:
             raise ConfigError(f"rare_fraction: must be in [0, 1], got {rare_fraction!r}")
         if rare_candidates < 2:
             raise ConfigError(f"rare_candidates: must be >= 2, got {rare_candidates!r}")
-        if rare_fraction > 0 and kind != "inverse_gbuffer":
-            raise ConfigError(f"rare_fraction: only the inverse model's data has materials to weigh, not {kind!r}")
-        self.rare_fraction, self.rare_candidates = rare_fraction, rare_candidates
+        if rare_loss_max != 0 and not rare_loss_max >= 1:
+            raise ConfigError(f"rare_loss_max: must be 0 (off) or >= 1, got {rare_loss_max!r}")
+        if (rare_fraction > 0 or rare_loss_max > 0) and kind != "inverse_gbuffer":
+            raise ConfigError(f"rare_fraction / rare_loss_max: only the inverse model's data has materials to "
+                              f"weigh, not {kind!r}")
+        self.rare_fraction, self.rare_candidates, self.rare_loss_max = rare_fraction, rare_candidates, rare_loss_max
         if crop % 8:
             raise ConfigError(f"crop: must be a multiple of 8, got {crop}")
         self.kind, self.frames, self.crop, self.flip, self.view = kind, frames, crop, flip, view
@@ -260,7 +267,7 @@ class ClipDataset:
         if missing:
             raise ConfigError(f"clips lack {missing} (load them with kinds including "
                               f"{'forward' if kind == 'forward_denoiser' else 'inverse'})")
-        self.rarity = rarity_table(self.clips) if rare_fraction > 0 else None
+        self.rarity = rarity_table(self.clips) if rare_fraction > 0 or rare_loss_max > 0 else None
 
     def __len__(self) -> int:
         return sum(len(c) - self.frames + 1 for c in self.clips)
@@ -269,7 +276,7 @@ class ClipDataset:
         out: dict[str, list] = {}
         for _ in range(batch):
             clip, t0, y, x, flip = self._draw(rng)
-            if self.rarity is not None and rng.random() < self.rare_fraction:
+            if self.rare_fraction > 0 and rng.random() < self.rare_fraction:
                 cands = [(clip, t0, y, x, flip)] + [self._draw(rng) for _ in range(self.rare_candidates - 1)]
                 clip, t0, y, x, flip = max(cands, key=self._crop_rarity)
             win = clip[t0:t0 + self.frames]
@@ -323,6 +330,9 @@ class ClipDataset:
             if flip:
                 g[:, NORMAL_X] *= -1  # normal x (camera frame) of the G-buffer data space
             out = {"x0": g, "rgb": img("rgb"), "sky": img("sky")}
+            if self.rare_loss_max > 0:
+                w = np.clip(self.rarity[material_bins(g)], 1 / self.rare_loss_max, self.rare_loss_max)
+                out["pixel_weight"] = np.where(out["sky"][:, 0] > 0.5, 1.0, w)[:, None].astype(np.float32)
             if self.view:
                 v = img("view")
                 if flip:  # a mirrored image is seen by a mirrored camera: x of the ray and of up

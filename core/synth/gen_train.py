@@ -107,6 +107,10 @@ class TrainSettings:
     (every run before 2026-12-05)."""
     rare_candidates: int = 4
     """Random windows a rare-material draw chooses from (>= 2)."""
+    rare_loss_max: float = 0.0
+    """Inverse model only: weigh each pixel's loss by its material's weight
+    (:func:`core.synth.gen_data.rarity_table`) clipped to ``[1 / rare_loss_max, rare_loss_max]``
+    (sky 1); 0 = unweighted (every run before 2026-12-05)."""
     view: bool = False
     """Inverse model only: also condition on the capture's camera (the contract's optional
     ``view`` input: per-pixel ray and world up, camera frame). With ``init_from`` a model made
@@ -121,6 +125,8 @@ class TrainSettings:
                               f"{self.paired_fraction}")
         if self.checkpoint_every < 1 or self.threads < 1:
             raise ConfigError("checkpoint_every and threads must be >= 1")
+        if self.rare_loss_max != 0 and not self.rare_loss_max >= 1:
+            raise ConfigError(f"rare_loss_max: must be 0 (off) or >= 1, got {self.rare_loss_max!r}")
         if not 0.0 <= self.rare_fraction <= 1.0 or self.rare_candidates < 2:
             raise ConfigError(f"rare_fraction / rare_candidates: need [0, 1] / >= 2, got "
                               f"{self.rare_fraction!r} / {self.rare_candidates!r}")
@@ -177,6 +183,8 @@ def edm_loss(model, batch: dict[str, torch.Tensor], s: TrainSettings, gen: torch
             cond["view"] = batch["view"]
     d = model(x_t=x_t, sigma=sigma, **cond)
     w = edm_weight(sigma, s.sigma_data).reshape(b, 1, 1, 1, 1)
+    if "pixel_weight" in batch:  # [B, F, 1, H, W], rare materials weigh more (TrainSettings.rare_loss_max)
+        w = w * batch["pixel_weight"]
     return (w * (d - x0) ** 2).mean()
 
 
@@ -294,7 +302,7 @@ def train_model(kind: str, data_dirs, out_dir: str | Path, steps: int, *, settin
         if s.view and kind != "inverse_gbuffer":
             raise ConfigError(f"view: only the inverse model takes the camera input, not {kind!r}")
         ds = ClipDataset(clips, kind, s.frames, s.crop, view=s.view, rare_fraction=s.rare_fraction,
-                         rare_candidates=s.rare_candidates)
+                         rare_candidates=s.rare_candidates, rare_loss_max=s.rare_loss_max)
 
         torch.manual_seed(s.seed)
         model = build_model(kind, s.unet, s.sigma_data, s.frames, view=s.view)
@@ -380,8 +388,9 @@ def train_model(kind: str, data_dirs, out_dir: str | Path, steps: int, *, settin
                           "wall_s_this_run": round(wall, 1), "final_loss_mean50": float(np.mean(losses[-50:])),
                           "ema_decay": s.ema_decay, "paired_fraction": s.paired_fraction,
                           **({"rare_fraction": s.rare_fraction, "rare_candidates": s.rare_candidates,
+                              "rare_loss_max": s.rare_loss_max,
                               "rarity_table": [round(float(w), 4) for w in ds.rarity]}
-                             if s.rare_fraction > 0 else {})},
+                             if ds.rarity is not None else {})},
                 metrics=metrics)
         return TrainResult(kind, step, losses, wall, ckpt, onnx_path, card_path, metrics)
     finally:

@@ -8,13 +8,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from core.errors import ConfigError, ShapeError
 from core.gen.contract import GBUFFER_SLICES
-from core.gen.nets import UNetSettings
+from core.gen.nets import UNetSettings, build_model
 from core.gen.runtime import load_model
 from core.synth.gen_data import ClipDataset, DataSettings, load_clips, split_bundles
-from core.synth.gen_train import TrainSettings, train_model
+from core.synth.gen_train import TrainSettings, edm_loss, train_model
 
 REPO = Path(__file__).resolve().parents[3]
 SCENE = REPO / "data" / "scenes" / "default"
@@ -235,3 +236,25 @@ def test_rare_crop_training_records_its_table(clips, tmp_path):
     assert card["rare_fraction"] == 0.5 and len(card["rarity_table"]) == 10 and max(card["rarity_table"]) > 1
     with pytest.raises(ConfigError, match="rare_fraction"):
         TrainSettings(rare_fraction=-0.1)
+
+
+def test_rare_loss_weights_follow_the_material_and_spare_the_sky():
+    clip = _material_clip()
+    ds = ClipDataset(clip, "inverse_gbuffer", crop=32, flip=False, rare_loss_max=3.0)
+    b = ds.sample(8, np.random.default_rng(0))
+    w, x0, sky = b["pixel_weight"].numpy(), b["x0"].numpy(), b["sky"].numpy()
+    assert w.shape == (8, 1, 1, 32, 32)
+    metal = (x0[:, :, 4:5] > 0) & (sky < 0.5)
+    road = (x0[:, :, 4:5] < 0) & (sky < 0.5)
+    assert np.allclose(w[sky > 0.5], 1.0)
+    assert np.allclose(w[metal], min(3.0, ds.rarity.max())) and np.allclose(w[road], max(1 / 3.0, ds.rarity[8]))
+    assert w[metal].min() > w[road].max()
+    with pytest.raises(ConfigError, match="rare_loss_max"):
+        TrainSettings(rare_loss_max=0.5)
+    s = TrainSettings(batch=2, crop=16, frames=1, lr=2e-3, warmup=2, threads=1, unet=TINY_NET, rare_loss_max=3.0)
+    model = build_model("inverse_gbuffer", TINY_NET, s.sigma_data, 1)
+    batch = ds.sample(2, np.random.default_rng(1))
+    plain = {k: v for k, v in batch.items() if k != "pixel_weight"}
+    l_w = edm_loss(model, batch, s, torch.Generator().manual_seed(0))
+    l_p = edm_loss(model, plain, s, torch.Generator().manual_seed(0))
+    assert torch.isfinite(l_w) and not torch.isclose(l_w, l_p)
