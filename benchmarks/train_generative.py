@@ -478,6 +478,7 @@ def ood_report(rand: Path, old: Path, work: Path, models: Path, threads: int, re
                  "generation": gen},
         "training": {k: log[k] for k in ("lr", "p_mean", "batch", "crop", "threads")} | {
             "mix_old": log.get("mix_old", []), "old_repeat": log.get("old_repeat", 1), "view": log.get("view", False),
+            "rare_fraction": log.get("rare_fraction", 0.0), "rare_loss_max": log.get("rare_loss_max", 0.0),
             "init_from": ("the shipped models/inverse_gbuffer.onnx (sha256 in before_sha256)"
                           if log.get("init_is_shipped", True) else f"{log['init_from']} (a candidate; sha256 in init_sha256)"),
             "chosen_run": run, "chosen_step": best["step"], "chosen_threads": best.get("threads", log["threads"]),
@@ -511,6 +512,13 @@ def ood_report(rand: Path, old: Path, work: Path, models: Path, threads: int, re
         shutil.copy2(models / "inverse_gbuffer.card.json", shipped_card)
     update_card(models, out / "snapshots" / f"inverse_gbuffer_{best['step']:06d}.card.json", res, shipped_card)
     d = json.loads(results.read_text()) if results.is_file() else {}
+    prev = d.get("ood")
+    if prev:  # the previous run's decision, training and notes stay, under history (its per-street figures go)
+        history = prev.pop("history", {})
+        if prev.get("after_sha256") != res["after_sha256"]:  # not a re-run of the same choice
+            history[prev.get("after_sha256", "previous")[:12]] = {
+                k: v for k, v in prev.items() if k not in ("before", "after", "data", "data_ranges", "held_out_regions")}
+        res["history"] = history
     d["ood"] = res
     results.write_text(json.dumps(d, indent=2))
     print(json.dumps({"decision": dec, "ood_mean": ood_mean}, indent=1), flush=True)
