@@ -212,6 +212,12 @@ OOD_TARGETS = {"albedo_si_psnr": 19.0, "normal_mae_deg": 12.0, "roughness_rmse":
 #: Worsening on the old streets (v9, v10, h7, h8) that still counts as "not worse in a way that
 #: matters" when deciding to replace the shipped model (never used to pick steps or settings).
 MATERIAL = {"albedo_si_psnr": 0.5, "normal_mae_deg": 1.0, "roughness_rmse": 0.02, "metallic_rmse": 0.02}
+#: How much lower a snapshot's val score must be than the shipped model's to replace it. The
+#: ``ood`` step picks the best of every run's snapshots, and snapshots of a run that changes
+#: nothing scatter about +-0.015 around the shipped model on the 3 val streets (the control run of
+#: 2026-12-05: 1.387 / 1.395 / 1.409 against 1.394): without a margin the best of many draws
+#: wins by chance. Set before the sliding-window runs were scored.
+VAL_MARGIN = 0.02
 
 
 def val_score(m: dict) -> float:
@@ -287,7 +293,7 @@ def eval_streets(onnx: Path, dirs, threads: int) -> dict:
 def finetune_randomised(rand: Path, old: Path, work: Path, init_from: Path, steps: int, eval_every: int, lr: float,
                         p_mean: float, batch: int, crop: int, threads: int, mix_old: tuple[str, ...] = (),
                         view: bool = False, shipped_model: Path | None = None, old_repeat: int = 1,
-                        rare_fraction: float = 0.0, rare_loss_max: float = 0.0) -> dict:
+                        rare_fraction: float = 0.0, rare_loss_max: float = 0.0, frames: int = 1) -> dict:
     """Fine-tune the inverse model on the randomised train split (plus the old generator's
     training streets ``mix_old`` under ``old``, so that the model keeps what it knew of the
     streets the pipeline's default scene comes from); every ``eval_every`` steps export a snapshot
@@ -302,6 +308,11 @@ def finetune_randomised(rand: Path, old: Path, work: Path, init_from: Path, step
     (``TrainSettings.rare_fraction``; windows, glass, metal-clad facades over road and walls);
     ``rare_loss_max``: each pixel's loss weighed by its material's rarity, clipped to that factor.
 
+    ``frames``: the window F of the paper's inverse model (``TrainSettings.frames``): each training
+    sample is F consecutive frames of one camera, mixed at the bottleneck (``core.gen.nets``); the
+    weights of an F = 1 model load unchanged (the mixing is F-agnostic), and evaluation and the
+    product's priors run it over half-overlapping windows (``core.gen.edm.WindowedDenoiser``).
+
     ``shipped_model`` (default ``init_from``) is the product's model, the "before" of the ``ood``
     step; it is copied once to ``<work>/inverse_randomised_shipped.onnx``. A fine-tune that starts
     from another file (a candidate) is a run of its own, named with the init file's stem."""
@@ -311,11 +322,14 @@ def finetune_randomised(rand: Path, old: Path, work: Path, init_from: Path, step
     shipped_model = Path(shipped_model or init_from)
     if old_repeat < 1:
         raise SystemExit(f"--old-repeat: need >= 1, got {old_repeat}")
+    if not (isinstance(frames, int) and frames >= 1):
+        raise SystemExit(f"--frames: need an int >= 1, got {frames!r}")
     mix_tag = (f"_mix{len(mix_old)}" + (f"x{old_repeat}" if old_repeat > 1 else "")) if mix_old else ""
     init_tag = "" if Path(init_from).resolve() == shipped_model.resolve() else f"_from_{Path(init_from).stem}"
     p_tag = "" if p_mean == 2.0 else f"_p{p_mean:g}"  # 2.0: the first runs' value, untagged
     rare_tag = (f"_rare{rare_fraction:g}" if rare_fraction > 0 else "") + (f"_wloss{rare_loss_max:g}" if rare_loss_max > 0 else "")
-    out = work / f"inverse_randomised_lr{lr:g}{p_tag}{mix_tag}{'_view' if view else ''}{rare_tag}{init_tag}"  # one run per variant
+    f_tag = f"_F{frames}" if frames > 1 else ""
+    out = work / f"inverse_randomised_lr{lr:g}{p_tag}{mix_tag}{'_view' if view else ''}{f_tag}{rare_tag}{init_tag}"  # one run per variant
     snaps = out / "snapshots"
     snaps.mkdir(parents=True, exist_ok=True)
     shipped = work / "inverse_randomised_shipped.onnx"  # the product's model before any fine-tune ("before")
@@ -344,7 +358,7 @@ def finetune_randomised(rand: Path, old: Path, work: Path, init_from: Path, step
     log.update({"init_from": str(init), "init_is_shipped": not init_tag, "train": [d.name for d in train_dirs], "val": [d.name for d in val],
                 "old_val": [d.name for d in old_val], "lr": lr, "p_mean": p_mean, "batch": batch, "crop": crop,
                 "threads": threads, "mix_old": list(mix_old), "old_repeat": old_repeat, "view": view,
-                "rare_fraction": rare_fraction, "rare_loss_max": rare_loss_max, "score": "val_score (benchmarks/train_generative.py)"})
+                "rare_fraction": rare_fraction, "rare_loss_max": rare_loss_max, "frames": frames, "score": "val_score (benchmarks/train_generative.py)"})
     done = {e["step"] for e in log["entries"]}
 
     def evaluate(step, onnx, extra):
@@ -359,7 +373,7 @@ def finetune_randomised(rand: Path, old: Path, work: Path, init_from: Path, step
 
     if 0 not in done:
         evaluate(0, init, {"note": "the start model (init_from)" + ("" if init_tag else ": the shipped model")})
-    s = replace(TrainSettings(), data=DataSettings(forward_source="degrade"), batch=batch, crop=crop, frames=1,
+    s = replace(TrainSettings(), data=DataSettings(forward_source="degrade"), batch=batch, crop=crop, frames=frames,
                 checkpoint_every=100, threads=threads, p_mean=p_mean, lr=lr, init_from=str(init), view=view,
                 rare_fraction=rare_fraction, rare_loss_max=rare_loss_max)
     clips = None
@@ -383,9 +397,9 @@ def finetune_randomised(rand: Path, old: Path, work: Path, init_from: Path, step
 
 def replace_decision(before: dict, after: dict) -> dict:
     """Replace the shipped model only when the snapshot scores better on the randomised val split
-    and is not worse by more than :data:`MATERIAL` on any figure of the old streets (v9/v10 mean and
+    by more than :data:`VAL_MARGIN` and is not worse by more than :data:`MATERIAL` on any figure of the old streets (v9/v10 mean and
     h7/h8 mean: a veto only)."""
-    better = after["val"]["score"] < before["val"]["score"]
+    better = after["val"]["score"] < before["val"]["score"] - VAL_MARGIN
     worse = []
     for key in ("old_val", "old_held_out"):
         if before.get(key) is None or after.get(key) is None:
@@ -396,7 +410,7 @@ def replace_decision(before: dict, after: dict) -> dict:
             if d > tol:
                 worse.append(f"{key}.{k}: {b[k]:.3f} -> {a[k]:.3f}")
     return {"better_on_val": bool(better), "materially_worse_on_old": worse, "replace": bool(better and not worse),
-            "rule": "val_score lower on the randomised val split, and no figure of the old v9/v10 or h7/h8 means "
+            "rule": f"val_score lower by more than {VAL_MARGIN} on the randomised val split, and no figure of the old v9/v10 or h7/h8 means "
                     f"worse by more than {MATERIAL}"}
 
 
@@ -479,6 +493,7 @@ def ood_report(rand: Path, old: Path, work: Path, models: Path, threads: int, re
         "training": {k: log[k] for k in ("lr", "p_mean", "batch", "crop", "threads")} | {
             "mix_old": log.get("mix_old", []), "old_repeat": log.get("old_repeat", 1), "view": log.get("view", False),
             "rare_fraction": log.get("rare_fraction", 0.0), "rare_loss_max": log.get("rare_loss_max", 0.0),
+            "frames": log.get("frames", 1),
             "init_from": ("the shipped models/inverse_gbuffer.onnx (sha256 in before_sha256)"
                           if log.get("init_is_shipped", True) else f"{log['init_from']} (a candidate; sha256 in init_sha256)"),
             "chosen_run": run, "chosen_step": best["step"], "chosen_threads": best.get("threads", log["threads"]),
@@ -612,6 +627,9 @@ def main(argv=None) -> int:
     ap.add_argument("--rare-loss-max", type=float, default=0.0,
                     help="inverse-randomised: weigh each pixel's loss by its material's rarity, clipped to "
                          "[1/X, X] (0: unweighted; TrainSettings.rare_loss_max)")
+    ap.add_argument("--frames", type=int, default=1,
+                    help="inverse-randomised: the model's window F of consecutive frames (the paper's sliding "
+                         "window; TrainSettings.frames); an F = 1 model's weights load unchanged")
     ap.add_argument("--mix-old", type=int, default=0,
                     help="inverse-randomised: also train on the old generator's first N training streets "
                          "(s100, s101, ... under --old-data; the mix-old step generates them)")
@@ -632,7 +650,8 @@ def main(argv=None) -> int:
                       p_mean=a.p_mean if a.p_mean is not None else 2.0, batch=a.batch,
                       crop=96 if a.crop == 64 else a.crop, threads=a.threads,
                       mix_old=tuple(name for name, *_ in scene_plan(a.seeds))[:a.mix_old], view=a.view,
-                      old_repeat=a.old_repeat, rare_fraction=a.rare_fraction, rare_loss_max=a.rare_loss_max)
+                      old_repeat=a.old_repeat, rare_fraction=a.rare_fraction, rare_loss_max=a.rare_loss_max,
+                      frames=a.frames)
             lr = a.lr or 1e-4
             if a.lr_pilot:  # each learning rate for --pilot-steps; the best on val continues to --steps
                 logs = {r: finetune_randomised(**ft, steps=a.pilot_steps, eval_every=a.pilot_steps // 2, lr=r)

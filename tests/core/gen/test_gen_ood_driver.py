@@ -38,3 +38,7 @@ def test_replace_decision(tg):
     assert d["better_on_val"] and not d["replace"] and d["materially_worse_on_old"]
     # not better on val: kept
     assert not tg.replace_decision(before, {"val": {"score": 2.5}, "old_held_out": before["old_held_out"]})["replace"]
+    # better on val, but by less than the margin (the spread of snapshots that change nothing): kept
+    close = {"val": {"score": 2.0 - tg.VAL_MARGIN / 2}, "old_held_out": before["old_held_out"]}
+    assert tg.VAL_MARGIN > 0 and not tg.replace_decision(before, close)["better_on_val"]
+    assert tg.replace_decision(before, {**close, "val": {"score": 2.0 - 2 * tg.VAL_MARGIN}})["replace"]

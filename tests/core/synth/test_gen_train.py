@@ -162,6 +162,43 @@ def test_camera_input_starts_from_a_model_without_it(clips, tmp_path):
         train_model("forward_denoiser", [SCENE], tmp_path / "fwd_view", 2, settings=s, clips=clips)
 
 
+def test_window_model_starts_from_a_single_frame_model(clips, tmp_path):
+    """TrainSettings.frames > 1 from an F = 1 file (the paper's sliding window, fine-tuned from the
+    shipped single-frame model): the weights load unchanged; on a window of identical frames the
+    bottleneck mean is each frame's own feature, so it computes exactly what the file computed,
+    and on distinct frames the frames see each other; it trains, and its export declares F."""
+    import torch
+
+    from core.gen.nets import build_model, example_inputs, export_onnx
+    from core.synth.gen_train import load_onnx_weights
+
+    torch.manual_seed(5)
+    src = build_model("inverse_gbuffer", TINY_NET, frames=1)
+    with torch.no_grad():
+        for p in src.parameters():
+            p.normal_(0.0, 0.1)
+    path = export_onnx(src.eval(), tmp_path / "single.onnx")
+    dst = build_model("inverse_gbuffer", TINY_NET, frames=3).eval()
+    load_onnx_weights(dst, path)
+    ex = example_inputs("inverse_gbuffer", batch=1, frames=1, height=16, width=24, seed=6)
+    same = {k: ex[k].expand(1, 3, *ex[k].shape[2:]).contiguous() for k in ("x_t", "rgb")}
+    with torch.no_grad():
+        ref = src(ex["x_t"], ex["sigma"], ex["rgb"])
+        out = dst(same["x_t"], ex["sigma"], same["rgb"])
+        other = same["rgb"].clone()
+        other[:, 1:] = torch.flip(other[:, 1:], dims=[-1])
+        mixed = dst(same["x_t"], ex["sigma"], other)
+    assert ref.abs().max() > 1e-3
+    for t in range(3):
+        assert torch.allclose(out[:, t], ref[:, 0], atol=1e-5), t
+    assert (mixed[:, 0] - ref[:, 0]).abs().max() > 1e-4  # frame 0 is unchanged, its window is not
+    s = TrainSettings(batch=2, crop=16, frames=3, lr=2e-3, warmup=2, threads=1, unet=TINY_NET, init_from=str(path))
+    r = train_model("inverse_gbuffer", [SCENE], tmp_path / "inv_f3", 10, settings=s, clips=clips)
+    assert np.all(np.isfinite(r.losses))
+    assert load_model(r.onnx_path, kind="inverse_gbuffer", threads=1).info.frames == 3
+    assert json.loads(r.card_path.read_text())["network"]["frames"] == 3
+
+
 def test_dataset_camera_input_follows_the_flip(clips):
     """The camera input of a mirrored crop is the mirrored camera's: the x components of the ray
     and of the up direction change sign with the image."""
