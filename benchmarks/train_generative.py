@@ -66,6 +66,10 @@ Usage::
     python benchmarks/train_generative.py mix-old --mix-old 12 --workers 1
     python benchmarks/train_generative.py inverse-randomised --lr 3e-4 --steps 12000 --mix-old 12 --old-repeat 4 --p-mean 3.5 --view --threads 2
     python benchmarks/train_generative.py ood --threads 2
+    # 2026-12-05 (stop 50): the sliding window of frames against a single-frame control, on the
+    # first 43 train streets + s100-s111 (val only; neither passed VAL_MARGIN, ood not run)
+    python benchmarks/train_generative.py inverse-randomised --lr 1e-4 --steps 6000 --eval-every 1500 --mix-old 12 --old-repeat 4 --p-mean 3.5 --view --frames 3 --threads 1
+    python benchmarks/train_generative.py inverse-randomised --lr 1e-4 --steps 12000 --eval-every 3000 --mix-old 12 --old-repeat 4 --p-mean 3.5 --view --threads 1
 
 The held-out evaluation for ``benchmarks/results/generative.json`` is
 ``python benchmarks/bench_generative.py --scenes <data>/h7 <data>/h8``.
