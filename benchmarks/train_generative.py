@@ -401,8 +401,8 @@ def finetune_randomised(rand: Path, old: Path, work: Path, init_from: Path, step
 
 def replace_decision(before: dict, after: dict) -> dict:
     """Replace the shipped model only when the snapshot scores better on the randomised val split
-    by more than :data:`VAL_MARGIN` and is not worse by more than :data:`MATERIAL` on any figure of the old streets (v9/v10 mean and
-    h7/h8 mean: a veto only)."""
+    by more than :data:`VAL_MARGIN` and is not worse by more than :data:`MATERIAL` on any figure of
+    the old streets (v9/v10 mean and h7/h8 mean: a veto only)."""
     better = after["val"]["score"] < before["val"]["score"] - VAL_MARGIN
     worse = []
     for key in ("old_val", "old_held_out"):

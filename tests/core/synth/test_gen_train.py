@@ -127,21 +127,31 @@ def test_generate_defaults_to_one_step_posterior_mean():
     assert torch.allclose(y, torch.full_like(y, 0.25), atol=1e-4)  # x - sigma (x - D) / sigma, x ~ 80 N(0, 1)
 
 
+def _random_export(path, seed: int):
+    """An F = 1 inverse network with random weights (as a trained one: no zero-initialised layers,
+    which the exporter would merge) in eval mode, and its ONNX export at ``path``."""
+    import torch
+
+    from core.gen.nets import export_onnx
+
+    torch.manual_seed(seed)
+    src = build_model("inverse_gbuffer", TINY_NET)
+    with torch.no_grad():
+        for p in src.parameters():
+            p.normal_(0.0, 0.1)
+    return src.eval(), export_onnx(src.eval(), path)
+
+
 def test_camera_input_starts_from_a_model_without_it(clips, tmp_path):
     """TrainSettings.view: a network with the camera input initialised from a file without it
     (zero stem weights for the new channels) computes exactly what the file computed, whatever
     the camera; it then trains, and its export declares the optional input."""
     import torch
 
-    from core.gen.nets import build_model, example_inputs, export_onnx
+    from core.gen.nets import example_inputs
     from core.synth.gen_train import load_onnx_weights
 
-    torch.manual_seed(3)
-    src = build_model("inverse_gbuffer", TINY_NET)
-    with torch.no_grad():
-        for p in src.parameters():
-            p.normal_(0.0, 0.1)
-    path = export_onnx(src.eval(), tmp_path / "plain.onnx")
+    src, path = _random_export(tmp_path / "plain.onnx", seed=3)
     dst = build_model("inverse_gbuffer", TINY_NET, view=True)
     load_onnx_weights(dst, path)
     ex = example_inputs("inverse_gbuffer", batch=2, frames=1, height=16, width=24, seed=4)
@@ -169,15 +179,10 @@ def test_window_model_starts_from_a_single_frame_model(clips, tmp_path):
     and on distinct frames the frames see each other; it trains, and its export declares F."""
     import torch
 
-    from core.gen.nets import build_model, example_inputs, export_onnx
+    from core.gen.nets import example_inputs
     from core.synth.gen_train import load_onnx_weights
 
-    torch.manual_seed(5)
-    src = build_model("inverse_gbuffer", TINY_NET, frames=1)
-    with torch.no_grad():
-        for p in src.parameters():
-            p.normal_(0.0, 0.1)
-    path = export_onnx(src.eval(), tmp_path / "single.onnx")
+    src, path = _random_export(tmp_path / "single.onnx", seed=5)
     dst = build_model("inverse_gbuffer", TINY_NET, frames=3).eval()
     load_onnx_weights(dst, path)
     ex = example_inputs("inverse_gbuffer", batch=1, frames=1, height=16, width=24, seed=6)
