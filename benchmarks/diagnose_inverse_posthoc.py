@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
 import sys
 import time
@@ -119,6 +120,8 @@ def predict_street(sess, den, street: Path) -> list[dict]:
 
 
 def street_rmse(clips: list[dict], post) -> dict:
+    """Roughness / metallic RMSE of one street: per clip over its non-sky pixels, after
+    ``post(channel, clip)`` (clamped to [0, 1]), then the mean over its clips."""
     res = {}
     for k in CHANNELS:
         v = []
@@ -185,7 +188,7 @@ def main(argv=None) -> int:
     chosen = min(score, key=score.get)
     res = {"what": __doc__.split("\n")[0] + " " + __doc__.split("\n")[1].strip(),
            "how": "python benchmarks/diagnose_inverse_posthoc.py ROOT --out J --fit-train %d" % a.fit_train,
-           "machine": {"cores": 2, "python": platform.python_version(), "platform": platform.platform()},
+           "machine": {"cores": os.cpu_count(), "python": platform.python_version(), "platform": platform.platform()},
            "model": a.model, "streets": {sp: sorted(ss) for sp, ss in streets.items()},
            "calibration_tables": {f: {k: np.round(t, 4).tolist() for k, t in tt.items()} for f, tt in tables.items()},
            "rows": rows,
