@@ -297,7 +297,8 @@ def eval_streets(onnx: Path, dirs, threads: int) -> dict:
 def finetune_randomised(rand: Path, old: Path, work: Path, init_from: Path, steps: int, eval_every: int, lr: float,
                         p_mean: float, batch: int, crop: int, threads: int, mix_old: tuple[str, ...] = (),
                         view: bool = False, shipped_model: Path | None = None, old_repeat: int = 1,
-                        rare_fraction: float = 0.0, rare_loss_max: float = 0.0, frames: int = 1) -> dict:
+                        rare_fraction: float = 0.0, rare_loss_max: float = 0.0, frames: int = 1,
+                        blocks: int = 1, mid_blocks: int = 0) -> dict:
     """Fine-tune the inverse model on the randomised train split (plus the old generator's
     training streets ``mix_old`` under ``old``, so that the model keeps what it knew of the
     streets the pipeline's default scene comes from); every ``eval_every`` steps export a snapshot
@@ -317,13 +318,20 @@ def finetune_randomised(rand: Path, old: Path, work: Path, init_from: Path, step
     weights of an F = 1 model load unchanged (the mixing is F-agnostic), and evaluation and the
     product's priors run it over half-overlapping windows (``core.gen.edm.WindowedDenoiser``).
 
+    ``blocks`` / ``mid_blocks``: grow the network (``core.gen.nets.UNetSettings``) before the
+    fine-tune; the start model's weights load unchanged and the new residual blocks start as the
+    identity, so step 0 is the start model.
+
     ``shipped_model`` (default ``init_from``) is the product's model, the "before" of the ``ood``
     step; it is copied once to ``<work>/inverse_randomised_shipped.onnx``. A fine-tune that starts
     from another file (a candidate) is a run of its own, named with the init file's stem."""
     from core.synth.gen_data import DataSettings, load_clips
+    from core.gen.nets import UNetSettings
     from core.synth.gen_train import TrainSettings, train_model
 
     shipped_model = Path(shipped_model or init_from)
+    if not (isinstance(blocks, int) and blocks >= 1 and isinstance(mid_blocks, int) and mid_blocks >= 0):
+        raise SystemExit(f"--blocks / --mid-blocks: need an int >= 1 / >= 0, got {blocks!r} / {mid_blocks!r}")
     if old_repeat < 1:
         raise SystemExit(f"--old-repeat: need >= 1, got {old_repeat}")
     if not (isinstance(frames, int) and frames >= 1):
@@ -333,7 +341,8 @@ def finetune_randomised(rand: Path, old: Path, work: Path, init_from: Path, step
     p_tag = "" if p_mean == 2.0 else f"_p{p_mean:g}"  # 2.0: the first runs' value, untagged
     rare_tag = (f"_rare{rare_fraction:g}" if rare_fraction > 0 else "") + (f"_wloss{rare_loss_max:g}" if rare_loss_max > 0 else "")
     f_tag = f"_F{frames}" if frames > 1 else ""
-    out = work / f"inverse_randomised_lr{lr:g}{p_tag}{mix_tag}{'_view' if view else ''}{f_tag}{rare_tag}{init_tag}"  # one run per variant
+    grow_tag = (f"_blocks{blocks}" if blocks != 1 else "") + (f"_mid{mid_blocks}" if mid_blocks else "")
+    out = work / f"inverse_randomised_lr{lr:g}{p_tag}{mix_tag}{'_view' if view else ''}{f_tag}{rare_tag}{grow_tag}{init_tag}"  # one run per variant
     snaps = out / "snapshots"
     snaps.mkdir(parents=True, exist_ok=True)
     shipped = work / "inverse_randomised_shipped.onnx"  # the product's model before any fine-tune ("before")
@@ -362,7 +371,8 @@ def finetune_randomised(rand: Path, old: Path, work: Path, init_from: Path, step
     log.update({"init_from": str(init), "init_is_shipped": not init_tag, "train": [d.name for d in train_dirs], "val": [d.name for d in val],
                 "old_val": [d.name for d in old_val], "lr": lr, "p_mean": p_mean, "batch": batch, "crop": crop,
                 "threads": threads, "mix_old": list(mix_old), "old_repeat": old_repeat, "view": view,
-                "rare_fraction": rare_fraction, "rare_loss_max": rare_loss_max, "frames": frames, "score": "val_score (benchmarks/train_generative.py)"})
+                "rare_fraction": rare_fraction, "rare_loss_max": rare_loss_max, "frames": frames, "blocks": blocks,
+                "mid_blocks": mid_blocks, "score": "val_score (benchmarks/train_generative.py)"})
     done = {e["step"] for e in log["entries"]}
 
     def evaluate(step, onnx, extra):
@@ -379,7 +389,8 @@ def finetune_randomised(rand: Path, old: Path, work: Path, init_from: Path, step
         evaluate(0, init, {"note": "the start model (init_from)" + ("" if init_tag else ": the shipped model")})
     s = replace(TrainSettings(), data=DataSettings(forward_source="degrade"), batch=batch, crop=crop, frames=frames,
                 checkpoint_every=100, threads=threads, p_mean=p_mean, lr=lr, init_from=str(init), view=view,
-                rare_fraction=rare_fraction, rare_loss_max=rare_loss_max)
+                rare_fraction=rare_fraction, rare_loss_max=rare_loss_max,
+                unet=UNetSettings(blocks=blocks, mid_blocks=mid_blocks))
     clips = None
     for n in range(eval_every, steps + 1, eval_every):
         snap = snaps / f"inverse_gbuffer_{n:06d}.onnx"
@@ -634,6 +645,12 @@ def main(argv=None) -> int:
     ap.add_argument("--frames", type=int, default=1,
                     help="inverse-randomised: the model's window F of consecutive frames (the paper's sliding "
                          "window; TrainSettings.frames); an F = 1 model's weights load unchanged")
+    ap.add_argument("--blocks", type=int, default=1,
+                    help="inverse-randomised: residual blocks per level (UNetSettings.blocks); more than the start "
+                         "model's grows it, the new blocks starting as the identity")
+    ap.add_argument("--mid-blocks", type=int, default=0,
+                    help="inverse-randomised: extra residual blocks at the bottleneck (UNetSettings.mid_blocks), "
+                         "grown as --blocks")
     ap.add_argument("--mix-old", type=int, default=0,
                     help="inverse-randomised: also train on the old generator's first N training streets "
                          "(s100, s101, ... under --old-data; the mix-old step generates them)")
@@ -655,7 +672,7 @@ def main(argv=None) -> int:
                       crop=96 if a.crop == 64 else a.crop, threads=a.threads,
                       mix_old=tuple(name for name, *_ in scene_plan(a.seeds))[:a.mix_old], view=a.view,
                       old_repeat=a.old_repeat, rare_fraction=a.rare_fraction, rare_loss_max=a.rare_loss_max,
-                      frames=a.frames)
+                      frames=a.frames, blocks=a.blocks, mid_blocks=a.mid_blocks)
             lr = a.lr or 1e-4
             if a.lr_pilot:  # each learning rate for --pilot-steps; the best on val continues to --steps
                 logs = {r: finetune_randomised(**ft, steps=a.pilot_steps, eval_every=a.pilot_steps // 2, lr=r)

@@ -98,6 +98,8 @@ class TrainSettings:
     init_from: str | None = None
     """An exported ONNX model of the same contract and network whose weights start the training
     (fine-tuning; the training data, held-out split and data recipe are the caller's to record).
+    The network may also be the file's grown by whole residual blocks (``unet.blocks``,
+    ``unet.mid_blocks``): they start as the identity (:func:`load_onnx_weights` ``grow``).
     Ignored when a checkpoint is resumed."""
     data: DataSettings = field(default_factory=DataSettings)
     """How bundles become tensors (forward source, held-out seeds/rotations)."""
@@ -232,13 +234,30 @@ def _config_key(kind: str, s: TrainSettings) -> str:
     return json.dumps(key, sort_keys=True)
 
 
-def load_onnx_weights(model: torch.nn.Module, onnx_path: str | Path) -> None:
+def _new_identity_blocks(model: torch.nn.Module, present: set[str]) -> set[str]:
+    """Module paths of the residual blocks of ``model`` none of whose weights are in ``present``:
+    blocks a grown network has and the file's network had not (:func:`load_onnx_weights`)."""
+    from core.gen.nets import _ResBlock
+
+    out = set()
+    for name, mod in model.named_modules():
+        if isinstance(mod, _ResBlock) and not any(f"{name}.{k}" in present for k in mod.state_dict()):
+            out.add(name)
+    return out
+
+
+def load_onnx_weights(model: torch.nn.Module, onnx_path: str | Path, *, grow: bool = False) -> None:
     """Copy the weights of an exported ONNX model into ``model`` (its initializers carry the
     state-dict names); ModelLoadError naming the file when it cannot be read or a tensor is
     missing or of another shape. One widening is allowed: a stem convolution with more input
     channels than the file's (a network built with more conditioning channels appended, e.g. the
     inverse model's ``view``) gets the file's weights for the first channels and zeros for the
-    rest, so it computes exactly what the file's model did."""
+    rest, so it computes exactly what the file's model did.
+
+    ``grow``: ``model`` may also have whole residual blocks the file has not (more ``blocks`` per
+    level, or ``mid_blocks``); they keep their initialisation, the identity (their second
+    convolution is zero), so the grown network computes exactly what the file's model did. Any
+    other missing weight is still an error."""
     import onnx
     from onnx import numpy_helper
 
@@ -247,8 +266,12 @@ def load_onnx_weights(model: torch.nn.Module, onnx_path: str | Path) -> None:
     except Exception as e:  # noqa: BLE001 - any parse failure is a load error of that file
         raise ModelLoadError(f"{onnx_path}: cannot read the ONNX model: {e}") from None
     sd = model.state_dict()
+    new_blocks = _new_identity_blocks(model, set(init)) if grow else set()
     new = {}
     for k, v in sd.items():
+        if k not in init and k.rpartition(".")[0].rpartition(".")[0] in new_blocks:
+            new[k] = v  # a grown block's own (identity) initialisation
+            continue
         if k not in init:
             raise ModelLoadError(f"{onnx_path}: no weight {k!r} (another network?)")
         a = torch.from_numpy(numpy_helper.to_array(init[k]).copy())
@@ -307,7 +330,7 @@ def train_model(kind: str, data_dirs, out_dir: str | Path, steps: int, *, settin
         torch.manual_seed(s.seed)
         model = build_model(kind, s.unet, s.sigma_data, s.frames, view=s.view)
         if s.init_from:
-            load_onnx_weights(model, s.init_from)
+            load_onnx_weights(model, s.init_from, grow=True)
         ema = copy.deepcopy(model).requires_grad_(False) if s.ema_decay > 0 else None
         opt = torch.optim.Adam(model.parameters(), lr=s.lr)
         rng = np.random.default_rng(s.seed)

@@ -109,6 +109,51 @@ def test_fine_tuning_starts_from_the_exported_weights(tmp_path):
         load_onnx_weights(dst, tmp_path / "bad.onnx")
 
 
+def test_grown_network_starts_as_the_file_model(tmp_path):
+    """load_onnx_weights(grow=True): a network with more residual blocks per level and extra
+    bottleneck blocks takes the file's weights and computes exactly the file's model (its new
+    blocks are the identity); without grow, or with another missing weight, it is an error."""
+    from core.errors import ModelLoadError
+    from core.gen.nets import export_onnx
+    from core.synth.gen_train import load_onnx_weights
+
+    torch.manual_seed(1)
+    src = build_model("inverse_gbuffer", TINY_NET, view=True).eval()
+    with torch.no_grad():
+        for p in src.parameters():
+            p.normal_(0.0, 0.1)
+    path = export_onnx(src, tmp_path / "m.onnx")
+    grown = build_model("inverse_gbuffer", UNetSettings(base_channels=8, emb_dim=32, env_channels=8, blocks=2,
+                                                        mid_blocks=2), view=True).eval()
+    assert sum(p.numel() for p in grown.parameters()) > sum(p.numel() for p in src.parameters())
+    with pytest.raises(ModelLoadError, match=r"m\.onnx: no weight 'net\.(enc|dec|mid_extra)\."):
+        load_onnx_weights(grown, path)
+    load_onnx_weights(grown, path, grow=True)
+    g = torch.Generator().manual_seed(3)
+    x, rgb, view = (torch.randn(2, 1, c, 16, 24, generator=g) for c in (9, 3, 6))
+    sigma = torch.tensor([0.3, 5.0])
+    with torch.no_grad():
+        a, b = src(x, sigma, rgb, view), grown(x, sigma, rgb, view)
+    assert torch.allclose(a, b, atol=1e-5), float((a - b).abs().max())
+    # the grown blocks train: a step moves the output away from the file model's
+    grown.train()
+    opt = torch.optim.SGD(grown.parameters(), lr=0.1)
+    grown(x, sigma, rgb, view).square().mean().backward()
+    opt.step()
+    with torch.no_grad():
+        assert not torch.allclose(grown.eval()(x, sigma, rgb, view), a, atol=1e-4)
+    # a missing weight outside a whole new residual block, or a changed shape, stays an error
+    other = build_model("inverse_gbuffer", UNetSettings(base_channels=8, emb_dim=32, env_channels=8, mid_blocks=1),
+                        view=True)
+    other.net.extra = torch.nn.Linear(4, 4)
+    with pytest.raises(ModelLoadError, match=r"m\.onnx: no weight 'net\.extra\.weight'"):
+        load_onnx_weights(other, path, grow=True)
+    del other.net.extra
+    other.net.head = torch.nn.Conv2d(8, 40, 3, padding=1)
+    with pytest.raises(ModelLoadError, match=r"m\.onnx: weight 'net\.head\.weight' has shape"):
+        load_onnx_weights(other, path, grow=True)
+
+
 def test_generate_defaults_to_one_step_posterior_mean():
     """The inverse model's default sampler is one Euler step from sigma_max: the output is the
     denoiser's own x0 estimate at sigma_max (one evaluation)."""
