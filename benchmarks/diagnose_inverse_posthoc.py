@@ -98,21 +98,16 @@ def apply_monotone(table: np.ndarray, x: torch.Tensor) -> torch.Tensor:
 def predict_street(sess, den, street: Path) -> list[dict]:
     """Per clip: prediction and truth of roughness / metallic [T, 1, H, W] in [0, 1], frames, mask."""
     from core.gen import contract as C
-    from core.gen.edm import GENERATE_SAMPLER
-    from core.gen.gbuffer_ensemble import generate_gbuffer
     from core.synth.gen_data import DataSettings, load_clips
+    from core.synth.gen_train import predict_inverse_clip
 
     sl = C.GBUFFER_SLICES
     out = []
     for clip in load_clips(street, DataSettings(forward_source="degrade"), ("inverse",)):
-        rgb = torch.from_numpy(np.stack([f["rgb"] for f in clip]))
-        g = torch.from_numpy(np.stack([f["gbuffer"] for f in clip]))
-        cond = {"rgb": rgb}
-        if sess.info.takes("view"):
-            cond["view"] = torch.from_numpy(np.stack([f["view"] for f in clip]))
-        y = generate_gbuffer(den, tuple(g.shape), cond, GENERATE_SAMPLER, None).double()
+        y, g, rgb, mask = predict_inverse_clip(sess, den, clip)
+        y = y.double()
         to01 = lambda a: (a.double().clamp(-1, 1) + 1) / 2  # noqa: E731
-        rec = {"guide": to01(rgb), "mask": torch.from_numpy(np.stack([f["sky"][0] for f in clip])) < 0.5}
+        rec = {"guide": to01(rgb), "mask": mask}
         for k in CHANNELS:
             rec[f"pred_{k}"], rec[f"true_{k}"] = to01(y[:, sl[k]]), to01(g[:, sl[k]])
         out.append(rec)

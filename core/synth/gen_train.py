@@ -420,6 +420,22 @@ def train_model(kind: str, data_dirs, out_dir: str | Path, steps: int, *, settin
         torch.set_num_threads(prev_threads)
 
 
+def predict_inverse_clip(sess, den, clip: list[dict], sampler=None, ensemble: EnsembleSettings | None = None):
+    """The inverse model on one clip of :func:`core.synth.gen_data.load_clips` (kind inverse):
+    ``(prediction, truth, rgb, mask)``: the ensemble-mean G-buffer and the true one [T, 9, H, W]
+    (G-buffer data space), the input frames [T, 3, H, W] (LDR data space) and the non-sky mask
+    [T, H, W] bool. ``sess`` / ``den``: the loaded model and its :class:`OnnxDenoiser`; the camera
+    input is passed when the model takes it."""
+    rgb = torch.from_numpy(np.stack([f["rgb"] for f in clip]))
+    g = torch.from_numpy(np.stack([f["gbuffer"] for f in clip]))
+    cond = {"rgb": rgb}
+    if sess.info.takes("view"):
+        cond["view"] = torch.from_numpy(np.stack([f["view"] for f in clip]))
+    y = generate_gbuffer(den, tuple(g.shape), cond, sampler or GENERATE_SAMPLER, ensemble)
+    mask = torch.from_numpy(np.stack([f["sky"][0] for f in clip])) < 0.5
+    return y, g, rgb, mask
+
+
 def evaluate_model(kind: str, onnx_path: str | Path, bundle_dirs, data: DataSettings | None = None, *,
                    threads: int = 2, sampler=None, max_frames: int | None = None,
                    ensemble: EnsembleSettings | None = None) -> dict:
@@ -454,13 +470,7 @@ def evaluate_model(kind: str, onnx_path: str | Path, bundle_dirs, data: DataSett
                     acc.setdefault("flicker_input", []).append(flicker(to01(x_in)))
                     acc.setdefault("flicker_model", []).append(flicker(to01(y)))
             else:
-                rgb = torch.from_numpy(np.stack([f["rgb"] for f in clip]))
-                g = torch.from_numpy(np.stack([f["gbuffer"] for f in clip]))
-                cond = {"rgb": rgb}
-                if sess.info.takes("view"):
-                    cond["view"] = torch.from_numpy(np.stack([f["view"] for f in clip]))
-                y = generate_gbuffer(den, tuple(g.shape), cond, sampler, ensemble)
-                mask = torch.from_numpy(np.stack([f["sky"][0] for f in clip])) < 0.5
+                y, g, _, mask = predict_inverse_clip(sess, den, clip, sampler, ensemble)
                 sl = C.GBUFFER_SLICES
                 hw = lambda a, k: a[:, sl[k]].permute(0, 2, 3, 1)  # noqa: E731
                 to01 = lambda a: ((a.clamp(-1, 1) + 1) / 2)  # noqa: E731
