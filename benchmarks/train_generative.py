@@ -508,7 +508,7 @@ def ood_report(rand: Path, old: Path, work: Path, models: Path, threads: int, re
         "training": {k: log[k] for k in ("lr", "p_mean", "batch", "crop", "threads")} | {
             "mix_old": log.get("mix_old", []), "old_repeat": log.get("old_repeat", 1), "view": log.get("view", False),
             "rare_fraction": log.get("rare_fraction", 0.0), "rare_loss_max": log.get("rare_loss_max", 0.0),
-            "frames": log.get("frames", 1),
+            "frames": log.get("frames", 1), "blocks": log.get("blocks", 1), "mid_blocks": log.get("mid_blocks", 0),
             "init_from": ("the shipped models/inverse_gbuffer.onnx (sha256 in before_sha256)"
                           if log.get("init_is_shipped", True) else f"{log['init_from']} (a candidate; sha256 in init_sha256)"),
             "chosen_run": run, "chosen_step": best["step"], "chosen_threads": best.get("threads", log["threads"]),
