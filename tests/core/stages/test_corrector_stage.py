@@ -39,10 +39,15 @@ def test_the_stage_needs_a_recovered_map(tiny_scene, joint_run, tmp_path):
 
 
 def test_an_interrupted_corrector_resumes_and_ends_like_an_uninterrupted_one(tiny_scene, joint_run, tmp_path):
+    """The fit resumes from its checkpoint and ends where an uninterrupted fit on the same rendered
+    features ends. Both fits read the features the interrupted run rendered (the stage's own
+    cache): a second render of the scene in the same process is not bit-identical (with the
+    inverse model of 2026-12-05 the first fit losses differed by ~0.4%), and that is not what
+    this test is about."""
     b = open_bundle(tiny_scene)
     cfg = profile_settings("tiny", "corrector")
     out = {}
-    for kind in ("straight", "interrupted"):
+    for kind in ("interrupted", "straight"):
         root = tmp_path / kind
         shutil.copytree(joint_run, root)
         run = RunDir(root)
@@ -53,12 +58,18 @@ def test_an_interrupted_corrector_resumes_and_ends_like_an_uninterrupted_one(tin
 
             with pytest.raises(_Stop):
                 run_stage("corrector", b, run, cfg, progress=False, on_progress=stop)
-            assert (root / "corrector" / "resume" / "fit.pt").is_file() and not run.is_done("corrector")
+            resume = root / "corrector" / "resume"
+            assert (resume / "fit.pt").is_file() and not run.is_done("corrector")
+            features = tmp_path / "features.npz"
+            shutil.copy2(resume / "features.npz", features)
+        else:
+            (root / "corrector" / "resume").mkdir(parents=True)
+            shutil.copy2(features, root / "corrector" / "resume" / "features.npz")
         out[kind] = run_stage("corrector", b, run, cfg, progress=False)
     a, c = out["straight"], out["interrupted"]
     assert a["resumed_from_iteration"] == 0 and c["resumed_from_iteration"] == cfg.checkpoint_every
     np.testing.assert_allclose([h["loss"] for h in c["history"]], [h["loss"] for h in a["history"]],
-                               rtol=1e-3, atol=1e-5)  # the renders: float noise of the threaded kernels
+                               rtol=1e-4, atol=1e-6)  # the fit's float noise of threaded convolutions
     assert a["in_sample"]["frames"] == len(a["views"]) >= 1
     assert not (tmp_path / "straight" / "corrector" / "resume").exists()
 
