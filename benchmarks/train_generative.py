@@ -325,8 +325,8 @@ def finetune_randomised(rand: Path, old: Path, work: Path, init_from: Path, step
     ``shipped_model`` (default ``init_from``) is the product's model, the "before" of the ``ood``
     step; it is copied once to ``<work>/inverse_randomised_shipped.onnx``. A fine-tune that starts
     from another file (a candidate) is a run of its own, named with the init file's stem."""
-    from core.synth.gen_data import DataSettings, load_clips
     from core.gen.nets import UNetSettings
+    from core.synth.gen_data import DataSettings, load_clips
     from core.synth.gen_train import TrainSettings, train_model
 
     shipped_model = Path(shipped_model or init_from)

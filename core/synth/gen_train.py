@@ -242,6 +242,9 @@ def _new_identity_blocks(model: torch.nn.Module, present: set[str]) -> set[str]:
     out = set()
     for name, mod in model.named_modules():
         if isinstance(mod, _ResBlock) and not any(f"{name}.{k}" in present for k in mod.state_dict()):
+            if bool(mod.conv2.weight.any()) or bool(mod.conv2.bias.any()):
+                raise ModelLoadError(f"model: residual block {name!r} is not in the file and is not the identity "
+                                     "(its second convolution is not zero): grow only a freshly built network")
             out.add(name)
     return out
 
@@ -269,7 +272,7 @@ def load_onnx_weights(model: torch.nn.Module, onnx_path: str | Path, *, grow: bo
     new_blocks = _new_identity_blocks(model, set(init)) if grow else set()
     new = {}
     for k, v in sd.items():
-        if k not in init and k.rpartition(".")[0].rpartition(".")[0] in new_blocks:
+        if k not in init and any(k.startswith(f"{b}.") for b in new_blocks):
             new[k] = v  # a grown block's own (identity) initialisation
             continue
         if k not in init:
