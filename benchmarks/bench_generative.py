@@ -18,7 +18,8 @@ What it measures
     onnx_parity_max_abs    per committed model: max |onnxruntime - PyTorch| on 3 random inputs of
                            its contract, PyTorch rebuilt from the file's weights.
     inverse.*              held-out G-buffer metrics of the inverse model (one-step sampler,
-                           :data:`core.gen.edm.GENERATE_SAMPLER`), non-sky pixels.
+                           :data:`core.gen.edm.GENERATE_SAMPLER`, mean of the product's ensemble
+                           :class:`core.gen.gbuffer_ensemble.EnsembleSettings`), non-sky pixels.
     lighting               sun direction error (deg) and log-space error of the physically fitted
                            prior on each scene (ground-truth geometry/albedo stand in for the
                            reconstruction, glossy and metallic pixels left out; cast shadows traced

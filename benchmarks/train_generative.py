@@ -298,7 +298,7 @@ def finetune_randomised(rand: Path, old: Path, work: Path, init_from: Path, step
                         p_mean: float, batch: int, crop: int, threads: int, mix_old: tuple[str, ...] = (),
                         view: bool = False, shipped_model: Path | None = None, old_repeat: int = 1,
                         rare_fraction: float = 0.0, rare_loss_max: float = 0.0, frames: int = 1,
-                        blocks: int = 1, mid_blocks: int = 0) -> dict:
+                        blocks: int | None = None, mid_blocks: int | None = None) -> dict:
     """Fine-tune the inverse model on the randomised train split (plus the old generator's
     training streets ``mix_old`` under ``old``, so that the model keeps what it knew of the
     streets the pipeline's default scene comes from); every ``eval_every`` steps export a snapshot
@@ -320,7 +320,8 @@ def finetune_randomised(rand: Path, old: Path, work: Path, init_from: Path, step
 
     ``blocks`` / ``mid_blocks``: grow the network (``core.gen.nets.UNetSettings``) before the
     fine-tune; the start model's weights load unchanged and the new residual blocks start as the
-    identity, so step 0 is the start model.
+    identity, so step 0 is the start model. ``None`` (the default): the start model's own depth
+    (``core.gen.nets.UNetSettings`` read off the file: ``core.synth.gen_train.onnx_unet_depth``).
 
     ``shipped_model`` (default ``init_from``) is the product's model, the "before" of the ``ood``
     step; it is copied once to ``<work>/inverse_randomised_shipped.onnx``. A fine-tune that starts
@@ -330,6 +331,12 @@ def finetune_randomised(rand: Path, old: Path, work: Path, init_from: Path, step
     from core.synth.gen_train import TrainSettings, train_model
 
     shipped_model = Path(shipped_model or init_from)
+    if blocks is None or mid_blocks is None:
+        from core.synth.gen_train import onnx_unet_depth
+
+        file_blocks, file_mid = onnx_unet_depth(init_from)
+        blocks = file_blocks if blocks is None else blocks
+        mid_blocks = file_mid if mid_blocks is None else mid_blocks
     if not (isinstance(blocks, int) and blocks >= 1 and isinstance(mid_blocks, int) and mid_blocks >= 0):
         raise SystemExit(f"--blocks / --mid-blocks: need an int >= 1 / >= 0, got {blocks!r} / {mid_blocks!r}")
     if old_repeat < 1:
@@ -585,8 +592,10 @@ def update_card(models: Path, snap_card: Path, res: dict, shipped_card: Path) ->
     card["held_out_regions"] = res["held_out_regions"]
     card["randomised_data"] = res["data"]["splits"]
     card["figures"] = {
-        "note": "one-step sampler, non-sky pixels, mean over streets; in_distribution = randomised test_id split; "
-                "ood.<axis> = test_ood_<axis> (that axis from its held-out region only); old_held_out = h7, h8",
+        "note": "one Euler step from sigma 80 (core.gen.edm.GENERATE_SAMPLER), mean of the product's ensemble "
+                "(core.gen.gbuffer_ensemble.EnsembleSettings(): 2 noise draws x mirror), non-sky pixels, mean over "
+                "streets; in_distribution = randomised test_id split; ood.<axis> = test_ood_<axis> (that axis from its "
+                "held-out region only); old_held_out = h7, h8",
         "targets_ood": res["targets_ood"],
         "validation_randomised": f["val"]["mean"],
         "in_distribution": f["test_id"]["mean"],
@@ -645,12 +654,12 @@ def main(argv=None) -> int:
     ap.add_argument("--frames", type=int, default=1,
                     help="inverse-randomised: the model's window F of consecutive frames (the paper's sliding "
                          "window; TrainSettings.frames); an F = 1 model's weights load unchanged")
-    ap.add_argument("--blocks", type=int, default=1,
-                    help="inverse-randomised: residual blocks per level (UNetSettings.blocks); more than the start "
-                         "model's grows it, the new blocks starting as the identity")
-    ap.add_argument("--mid-blocks", type=int, default=0,
-                    help="inverse-randomised: extra residual blocks at the bottleneck (UNetSettings.mid_blocks), "
-                         "grown as --blocks")
+    ap.add_argument("--blocks", type=int, default=None,
+                    help="inverse-randomised: residual blocks per level (UNetSettings.blocks; default: the start "
+                         "model's); more than the start model's grows it, the new blocks starting as the identity")
+    ap.add_argument("--mid-blocks", type=int, default=None,
+                    help="inverse-randomised: extra residual blocks at the bottleneck (UNetSettings.mid_blocks; "
+                         "default: the start model's), grown as --blocks")
     ap.add_argument("--mix-old", type=int, default=0,
                     help="inverse-randomised: also train on the old generator's first N training streets "
                          "(s100, s101, ... under --old-data; the mix-old step generates them)")

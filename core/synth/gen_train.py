@@ -249,6 +249,24 @@ def _new_identity_blocks(model: torch.nn.Module, present: set[str]) -> set[str]:
     return out
 
 
+def onnx_unet_depth(onnx_path: str | Path) -> tuple[int, int]:
+    """``(blocks, mid_blocks)`` (``core.gen.nets.UNetSettings``) of the network an exported ONNX
+    model was built with, read off its initializer names (``net.enc.<level>.<block>.*``,
+    ``net.mid_extra.<i>.*``): the depth to build before :func:`load_onnx_weights`.
+    ModelLoadError naming the file when it cannot be read or has no encoder blocks."""
+    import onnx
+
+    try:
+        names = [i.name for i in onnx.load(str(onnx_path)).graph.initializer]
+    except Exception as e:  # noqa: BLE001 - any parse failure is a load error of that file
+        raise ModelLoadError(f"{onnx_path}: cannot read the ONNX model: {e}") from None
+    enc = {int(n.split(".")[3]) for n in names if n.startswith("net.enc.") and n.count(".") >= 4}
+    mid = {int(n.split(".")[2]) for n in names if n.startswith("net.mid_extra.") and n.count(".") >= 3}
+    if not enc:
+        raise ModelLoadError(f"{onnx_path}: no encoder blocks (net.enc.*): not a core.gen.nets U-Net")
+    return max(enc) + 1, len(mid)
+
+
 def load_onnx_weights(model: torch.nn.Module, onnx_path: str | Path, *, grow: bool = False) -> None:
     """Copy the weights of an exported ONNX model into ``model`` (its initializers carry the
     state-dict names); ModelLoadError naming the file when it cannot be read or a tensor is
@@ -260,7 +278,8 @@ def load_onnx_weights(model: torch.nn.Module, onnx_path: str | Path, *, grow: bo
     ``grow``: ``model`` may also have whole residual blocks the file has not (more ``blocks`` per
     level, or ``mid_blocks``); they keep their initialisation, the identity (their second
     convolution is zero), so the grown network computes exactly what the file's model did. Any
-    other missing weight is still an error."""
+    other missing weight is still an error, and so is a weight of the file the network has no
+    place for (never silently dropped)."""
     import onnx
     from onnx import numpy_helper
 
@@ -286,6 +305,14 @@ def load_onnx_weights(model: torch.nn.Module, onnx_path: str | Path, *, grow: bo
             raise ModelLoadError(f"{onnx_path}: weight {k!r} has shape {tuple(a.shape)}, the network "
                                  f"{tuple(v.shape)}")
         new[k] = a.to(v.dtype)
+    # the other direction: a weight of the file the network has no place for (a smaller network
+    # than the file's would otherwise silently drop whole blocks)
+    prefixes = {k.split(".", 1)[0] + "." for k in sd}
+    unused = sorted(n for n in init if n not in sd and n.startswith(tuple(prefixes)))
+    if unused:
+        raise ModelLoadError(f"{onnx_path}: the network has no place for the file's weight(s) "
+                             f"{', '.join(map(repr, unused[:3]))}{' ...' if len(unused) > 3 else ''} "
+                             "(a smaller network than the file's? build it with the file's blocks / mid_blocks)")
     model.load_state_dict(new)
 
 

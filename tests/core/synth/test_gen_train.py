@@ -115,7 +115,7 @@ def test_grown_network_starts_as_the_file_model(tmp_path):
     blocks are the identity); without grow, or with another missing weight, it is an error."""
     from core.errors import ModelLoadError
     from core.gen.nets import export_onnx
-    from core.synth.gen_train import load_onnx_weights
+    from core.synth.gen_train import load_onnx_weights, onnx_unet_depth
 
     torch.manual_seed(1)
     src = build_model("inverse_gbuffer", TINY_NET, view=True).eval()
@@ -135,6 +135,11 @@ def test_grown_network_starts_as_the_file_model(tmp_path):
     with torch.no_grad():
         a, b = src(x, sigma, rgb, view), grown(x, sigma, rgb, view)
     assert torch.allclose(a, b, atol=1e-5), float((a - b).abs().max())
+    # the other way round: the file's extra blocks are never silently dropped by a smaller network
+    big = export_onnx(grown, tmp_path / "big.onnx")
+    assert onnx_unet_depth(path) == (1, 0) and onnx_unet_depth(big) == (2, 2)  # the depth to build for each file
+    with pytest.raises(ModelLoadError, match=r"big\.onnx: the network has no place for .*'net\.(enc|dec|mid_extra)\."):
+        load_onnx_weights(build_model("inverse_gbuffer", TINY_NET, view=True), big)
     # the grown blocks train: a step moves the output away from the file model's
     grown.train()
     opt = torch.optim.SGD(grown.parameters(), lr=0.1)
