@@ -63,8 +63,12 @@ def _render_features(graph, bundle, env: np.ndarray, views, cfg: CorrectorStageS
     from core.render.scenario import Scenario, render_scenario
 
     m = bundle.manifest
+    # cold: the features never depend on what else this process rendered before (a warm shared
+    # visibility cache, Scenario.reuse_visibility_across_requests, moves shadowed pixels by up to
+    # ~0.1 at shadow edges on the tiny street), so a resumed pipeline sees what a straight one does
     sc = Scenario(views=tuple(views), envmap=np.asarray(env, np.float32), base_exposure=m.ldr_exposure,
-                  gamma=m.ldr_gamma, rays_per_pixel=cfg.rays_per_pixel, outputs=("png",))
+                  gamma=m.ldr_gamma, rays_per_pixel=cfg.rays_per_pixel, outputs=("png",),
+                  reuse_visibility_across_requests=False)
     feats: list[np.ndarray] = []
     with tempfile.TemporaryDirectory(prefix="brdf-corrector-") as tmp:
         render_scenario(graph, sc, tmp, features_out=feats)
