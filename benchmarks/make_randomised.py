@@ -26,6 +26,10 @@ from core.synth.randomise import RandomisationSettings, spec_config
 from core.synth.splits import SPLITS, describe, split_spec
 
 
+#: Per-bundle generation time (``{"seconds": s, "workers": n}``), written beside ``bundle.json``.
+GENERATION_FILE = "generation_s.json"
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--split", required=True, help=f"one of {', '.join(SPLITS)}, or 'all'")
@@ -70,7 +74,11 @@ def main(argv=None) -> int:
                 continue
             t0 = time.time()
             generate_scene(spec_config(spec, profile(a.profile), **overrides), root, name=name, progress=False, workers=a.workers)
-            print(f"{name}: {time.time() - t0:.1f} s ({spec.layout}, {spec.palette}, {spec.light}, "
+            seconds = time.time() - t0
+            # the bundle's own generation time: benchmarks/train_generative.py ood sums them, however
+            # (and in how many processes) the streets were made
+            (root / GENERATION_FILE).write_text(json.dumps({"seconds": round(seconds, 1), "workers": a.workers}))
+            print(f"{name}: {seconds:.1f} s ({spec.layout}, {spec.palette}, {spec.light}, "
                   f"h {spec.camera_height_m} m, fov {spec.hfov_deg})", flush=True)
     return 0
 

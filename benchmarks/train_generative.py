@@ -282,6 +282,29 @@ def generate_randomised(rand: Path, old: Path, n_train: int, n_val: int, n_test:
         record("train", t0, len(split_dirs(rand, "train")))
 
 
+def bundle_generation_seconds(rand: Path, splits) -> dict:
+    """Sum of the per-bundle generation times ``make_randomised.py`` writes beside each bundle
+    (process seconds: on N processes the wall time is about 1/N of it), per split and in all;
+    ``untimed`` counts bundles made before the file existed (their time is not in the sum)."""
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    from make_randomised import GENERATION_FILE
+
+    out: dict = {"process_s": 0.0, "bundles_timed": 0, "untimed": 0, "per_split_process_s": {}}
+    for sp in splits:
+        tot = 0.0
+        for d in split_dirs(rand, sp):
+            f = d / GENERATION_FILE
+            if f.is_file():
+                tot += float(json.loads(f.read_text())["seconds"])
+                out["bundles_timed"] += 1
+            else:
+                out["untimed"] += 1
+        out["per_split_process_s"][sp] = round(tot, 1)
+        out["process_s"] += tot
+    out["process_s"] = round(out["process_s"], 1)
+    return out
+
+
 def eval_streets(onnx: Path, dirs, threads: int) -> dict:
     """Inverse-model metrics per street (mean over its clips) and their mean over the streets."""
     from core.synth.gen_data import DataSettings
@@ -539,6 +562,7 @@ def ood_report(rand: Path, old: Path, work: Path, models: Path, threads: int, re
     if not log.get("init_is_shipped", True):
         res["init_sha256"] = _sha256(Path(log["init_from"]))
     res["wall_s"] = {"generation": round(sum(v.get("wall_s", v.get("wall_s_last_call", 0.0)) for v in gen.values()), 1),
+                     "generation_per_bundle": bundle_generation_seconds(rand, ["train", "val"] + splits),
                      "training_all_runs": round(sum(e.get("train_wall_s", 0.0) for lg in runs.values()
                                                     for e in lg["entries"]), 1),
                      "validation_scoring": round(sum(e.get("eval_wall_s", 0.0) for lg in runs.values()
