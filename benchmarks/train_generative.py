@@ -70,6 +70,15 @@ Usage::
     # first 43 train streets + s100-s111 (val only; neither passed VAL_MARGIN, ood not run)
     python benchmarks/train_generative.py inverse-randomised --lr 1e-4 --steps 6000 --eval-every 1500 --mix-old 12 --old-repeat 4 --p-mean 3.5 --view --frames 3 --threads 1
     python benchmarks/train_generative.py inverse-randomised --lr 1e-4 --steps 12000 --eval-every 3000 --mix-old 12 --old-repeat 4 --p-mean 3.5 --view --threads 1
+    # 2026-12-05 (stop 52): the network grown (2 blocks per level, 4 extra bottleneck blocks): the
+    # stop-53 fine-tune line below on 80 streets with --blocks 2 --mid-blocks 4 --eval-every 4000
+    # 2026-12-05 (stop 53, the shipped model): 140 train streets (the depth now comes from the start
+    # file); about 85 min of generation on two processes + 31 min of training (two runs side by side)
+    python benchmarks/train_generative.py randomised --rand-train 0 --rand-test 2 --rand-val 10 --old-streets v9 v10 h7 h8
+    python benchmarks/train_generative.py mix-old --mix-old 12 --workers 1
+    python benchmarks/make_randomised.py --split train --start 0 --count 70 --out /root/brdf_data/randomised --pinhole --set num_frames=4 --set 'relight_envmaps=[]' --workers 1   # and --start 70 on the other core
+    python benchmarks/train_generative.py inverse-randomised --lr 2e-4 --steps 8000 --eval-every 2000 --mix-old 12 --old-repeat 4 --p-mean 3.5 --view --threads 1   # and --lr 1e-4 beside it
+    python benchmarks/train_generative.py ood --threads 2
 
 The held-out evaluation for ``benchmarks/results/generative.json`` is
 ``python benchmarks/bench_generative.py --scenes <data>/h7 <data>/h8``.
