@@ -249,17 +249,23 @@ def _new_identity_blocks(model: torch.nn.Module, present: set[str]) -> set[str]:
     return out
 
 
+def _onnx_initializers(onnx_path: str | Path) -> dict:
+    """The initializers of an exported ONNX model by name (they carry the state-dict names);
+    ModelLoadError naming the file when it cannot be read."""
+    import onnx
+
+    try:
+        return {i.name: i for i in onnx.load(str(onnx_path)).graph.initializer}
+    except Exception as e:  # noqa: BLE001 - any parse failure is a load error of that file
+        raise ModelLoadError(f"{onnx_path}: cannot read the ONNX model: {e}") from None
+
+
 def onnx_unet_depth(onnx_path: str | Path) -> tuple[int, int]:
     """``(blocks, mid_blocks)`` (``core.gen.nets.UNetSettings``) of the network an exported ONNX
     model was built with, read off its initializer names (``net.enc.<level>.<block>.*``,
     ``net.mid_extra.<i>.*``): the depth to build before :func:`load_onnx_weights`.
     ModelLoadError naming the file when it cannot be read or has no encoder blocks."""
-    import onnx
-
-    try:
-        names = [i.name for i in onnx.load(str(onnx_path)).graph.initializer]
-    except Exception as e:  # noqa: BLE001 - any parse failure is a load error of that file
-        raise ModelLoadError(f"{onnx_path}: cannot read the ONNX model: {e}") from None
+    names = list(_onnx_initializers(onnx_path))
     enc = {int(n.split(".")[3]) for n in names if n.startswith("net.enc.") and n.count(".") >= 4}
     mid = {int(n.split(".")[2]) for n in names if n.startswith("net.mid_extra.") and n.count(".") >= 3}
     if not enc:
@@ -280,13 +286,9 @@ def load_onnx_weights(model: torch.nn.Module, onnx_path: str | Path, *, grow: bo
     convolution is zero), so the grown network computes exactly what the file's model did. Any
     other missing weight is still an error, and so is a weight of the file the network has no
     place for (never silently dropped)."""
-    import onnx
     from onnx import numpy_helper
 
-    try:
-        init = {i.name: i for i in onnx.load(str(onnx_path)).graph.initializer}
-    except Exception as e:  # noqa: BLE001 - any parse failure is a load error of that file
-        raise ModelLoadError(f"{onnx_path}: cannot read the ONNX model: {e}") from None
+    init = _onnx_initializers(onnx_path)
     sd = model.state_dict()
     new_blocks = _new_identity_blocks(model, set(init)) if grow else set()
     new = {}
