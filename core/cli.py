@@ -543,8 +543,9 @@ def build_parser(extensions=()) -> argparse.ArgumentParser:
     rl.add_argument("--rotation", type=float, default=0.0, help="rotate the map about +z, degrees")
     rl.add_argument("--no-shadows", action="store_true", help="no ray-traced visibility (faster, no shadows)")
     rl.add_argument("--corrector", default="auto", choices=["auto", "off"], help="auto: apply the scene corrector "
-                    "the run's corrector stage fitted on the capture, when it has one and the exposure is the "
-                    "capture's (--exposure 0); off: the denoised PBR frames")
+                    "the run's corrector stage fitted on the capture, when it has one and the render is under the "
+                    "light it was fitted at (--envmap the run's recovered map file, no --rotation, no --lights, "
+                    "--exposure 0); off: the denoised PBR frames")
     rl.set_defaults(fn=cmd_relight)
 
     nt = sub.add_parser("night", help="render a reconstruction at night (scaled sky, headlights, lights)")

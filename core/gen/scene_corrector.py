@@ -7,8 +7,12 @@ glass whose reflections it cannot trace. The shipped forward model, trained on o
 cannot learn a given street's own mistakes (``benchmarks/results/forward_ceiling.json``: +0.1 dB
 over OIDN across streets). The capture can: the training views re-rendered under the recovered
 map should reproduce the captured frames. The corrector is fitted there, on the denoised PBR
-frame and the frame's G-buffers against the captured frame, and applied to any later render of the
-scene (a relight, a new path), where it sees that render's own G-buffers and LDR frame.
+frame and the frame's G-buffers against the captured frame, and applied to later renders of the
+scene under that same light (a new path, an edit), where it sees that render's own G-buffers and
+LDR frame. It learns the capture's light along with the reconstruction's mistakes, so it is not
+applied under another map, rotation, sky scale or added lights (:attr:`SceneCorrector.fitted_light`,
+:func:`light_fingerprint`): on three development streets it made every relit FLIP worse
+(``benchmarks/results/corrector.json``).
 
     features [H, W, 13] = LDR frame (3, denoised, [0, 1]) | albedo (3) | camera-frame normal (3) |
                           roughness | metallic | opacity | log(1 + depth / 1 m)
@@ -84,6 +88,11 @@ class SceneCorrector(torch.nn.Module):
         torch.nn.init.zeros_(self.head.weight)
         torch.nn.init.zeros_(self.head.bias)
         self.width = width
+        self.fitted_light: str | None = None
+        """:func:`light_fingerprint` of the environment map it was fitted under (set by
+        :func:`load_corrector` from the file, or by :func:`core.render.scenario.scene_corrector`
+        for a file written before it was recorded); None: unknown, and the caller vouches that its
+        renders are under the fitted light."""
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return x[:, :3] + self.head(self.body(x))
@@ -188,6 +197,19 @@ def apply_corrector(net: SceneCorrector, features: np.ndarray) -> np.ndarray:
     return out
 
 
+def light_fingerprint(envmap) -> str:
+    """SHA-256 (hex) of an environment map ``[H, W, 3]`` as float32, shape included: which light a
+    corrector was fitted under. Raises ShapeError for anything but an ``[H, W, 3]`` array."""
+    import hashlib
+
+    env = np.ascontiguousarray(np.asarray(envmap, np.float32))
+    if env.ndim != 3 or env.shape[-1] != 3:
+        raise ShapeError(f"envmap: expected [H, W, 3], got {env.shape}")
+    h = hashlib.sha256(repr(env.shape).encode())
+    h.update(env.tobytes())
+    return h.hexdigest()
+
+
 def save_corrector(path: str | Path, net: SceneCorrector, settings: CorrectorSettings, meta: dict | None = None) -> None:
     """Write the corrector (weights, settings, ``meta``) to ``path`` atomically."""
     from core.io.atomic import atomic_output
@@ -219,8 +241,10 @@ def load_corrector(path: str | Path) -> SceneCorrector:
     except Exception as exc:  # noqa: BLE001
         raise ModelLoadError(f"{p}: weights do not fit the network ({exc})") from exc
     net.eval()
+    light = (d.get("meta") or {}).get("fitted_light")
+    net.fitted_light = light if isinstance(light, str) else None
     return net
 
 
 __all__ = ["FEATURES", "CorrectorSettings", "SceneCorrector", "frame_features", "fit_corrector", "apply_corrector",
-           "save_corrector", "load_corrector"]
+           "light_fingerprint", "save_corrector", "load_corrector"]

@@ -220,9 +220,11 @@ class Scenario:
     """What to write."""
     corrector: object = None
     """The reconstruction's scene corrector (:class:`core.gen.scene_corrector.SceneCorrector`,
-    the ``corrector`` stage), applied to the denoised LDR frames when the render keeps the
-    capture's exposure (``exposure_ev`` 0: it was fitted there; otherwise not applied, and the
-    result's metrics say so); None: none (:func:`scene_corrector` loads a run's)."""
+    the ``corrector`` stage), applied to the denoised LDR frames when the render is under the
+    light and exposure it was fitted at: the capture's recovered map (its
+    ``fitted_light``), unrotated and unscaled, no added lights, ``exposure_ev`` 0. Otherwise it is
+    not applied and the result's metrics say why. None: none (:func:`scene_corrector` loads a
+    run's)."""
 
     def __post_init__(self) -> None:
         if not self.views:
@@ -500,10 +502,19 @@ def scene_corrector(run):
     its capture, or None with the reason."""
     from core.gen.scene_corrector import load_corrector
 
+    from core.gen.scene_corrector import light_fingerprint
+    from core.io.envmap_file import read_envmap
+
     path = run.stage_dir("corrector") / "corrector.pt"
     if not run.is_done("corrector") or not path.is_file():
         return None, "none: the reconstruction has no corrector stage"
-    return load_corrector(path), f"fitted on the capture ({path})"
+    net = load_corrector(path)
+    if net.fitted_light is None:  # written before the light was recorded: the map it was fitted under
+        env_path, _stage = run.latest_envmap(before="corrector")
+        if env_path is None:
+            return None, f"none: {path} has no recorded light and the run no recovered map"
+        net.fitted_light = light_fingerprint(read_envmap(env_path))
+    return net, f"fitted on the capture ({path}); applied under the capture's recovered light only"
 
 
 def night_scenario(run, *, sky_scale: float = 0.02, headlights: bool = True, headlight_intensity: float = 3000.0,
@@ -621,6 +632,36 @@ class ScenarioResult:
     metrics: dict = field(default_factory=dict)
 
 
+def _corrector_gate(scenario: Scenario, n_lights: int):
+    """``(corrector or None, note)``: the scenario's corrector when this render is under the light
+    and exposure it was fitted at (the capture's recovered map, unrotated, unscaled, no added
+    lights, ``exposure_ev`` 0), else None and why. The corrector learns the capture's light with
+    the reconstruction's mistakes: under a new map it made every relit FLIP worse on three
+    development streets (``benchmarks/results/corrector.json``)."""
+    from core.gen.scene_corrector import light_fingerprint
+
+    corrector = scenario.corrector
+    if corrector is None:
+        return None, "none"
+    why = []
+    if scenario.exposure_ev != 0.0:
+        why.append(f"fitted at the capture's exposure, this render's is "
+                   f"{'automatic' if scenario.exposure_ev is None else f'{scenario.exposure_ev:+g} EV'}")
+    fitted = getattr(corrector, "fitted_light", None)
+    if fitted is not None:
+        if light_fingerprint(scenario.envmap) != fitted:
+            why.append("fitted under the capture's recovered map, this render is under another map")
+        if scenario.rotation_deg % 360.0 != 0.0:
+            why.append(f"fitted under the unrotated map, this render's is rotated {scenario.rotation_deg:g} deg")
+        if scenario.sky_scale != 1.0:
+            why.append(f"fitted under the map as recovered, this render scales it by {scenario.sky_scale:g}")
+        if n_lights:
+            why.append(f"fitted without added lights, this render has {n_lights}")
+    if why:
+        return None, "not applied: " + "; ".join(why)
+    return corrector, "applied (fitted on the capture)"
+
+
 def render_scenario(graph, scenario: Scenario, out_dir: str | Path, *,
                     on_frame: Callable[[int, int], None] | None = None,
                     features_out: list | None = None) -> ScenarioResult:
@@ -654,13 +695,7 @@ def render_scenario(graph, scenario: Scenario, out_dir: str | Path, *,
                            indirect_specular_rays=scenario.indirect_specular_rays,
                            masking=scenario.masking, opaque_above=scenario.opaque_above,
                            object_solids=scenario.object_solids)
-    corrector, corrector_note = scenario.corrector, "none"
-    if corrector is not None:
-        corrector_note = "applied (fitted on the capture)"
-        if scenario.exposure_ev != 0.0:
-            corrector = None
-            corrector_note = (f"not applied: fitted at the capture's exposure, this render's is "
-                              f"{'automatic' if scenario.exposure_ev is None else f'{scenario.exposure_ev:+g} EV'}")
+    corrector, corrector_note = _corrector_gate(scenario, len(lights))
     with ClipHook(reuse_across_clips=scenario.reuse_visibility_across_requests) as hook:
         res = render_clip(g, env, list(scenario.views), out_dir, settings=settings, lights=lights,
                           outputs=list(scenario.outputs), denoiser=scenario.denoiser,

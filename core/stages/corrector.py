@@ -26,7 +26,7 @@ from tqdm import tqdm
 
 from core.errors import ConfigError, FormatError
 from core.gen.scene_corrector import (CorrectorSettings, SceneCorrector, apply_corrector, fit_corrector,
-                                      save_corrector)
+                                      light_fingerprint, save_corrector)
 from core.io.envmap_file import read_envmap
 from core.metrics import psnr
 
@@ -98,6 +98,7 @@ def run_stage(ctx) -> dict:
     env_path, env_stage = run.latest_envmap(before=ctx.name)
     if env_path is None:
         raise ConfigError(f"stage 'corrector': needs a recovered environment map (the pbr stage) in {run.root}")
+    env = read_envmap(env_path)
     views = sorted(views_from_frames(b, "train"), key=lambda v: (v.time_s, v.name))
     pick = np.unique(np.linspace(0, len(views) - 1, min(cfg.max_frames, len(views))).round().astype(int))
     views = [views[i] for i in pick]
@@ -117,7 +118,7 @@ def run_stage(ctx) -> dict:
             except Exception as exc:  # noqa: BLE001 - a corrupt cache is reported, never silently reset
                 raise FormatError(f"{f_feats}: unreadable corrector features ({exc}); delete it to re-render") from exc
         else:
-            feats = _render_features(graph, b, read_envmap(env_path), views, cfg)
+            feats = _render_features(graph, b, env, views, cfg)
             tmp = f_feats.with_suffix(".tmp")  # renamed when whole: a kill mid-write leaves no bad cache
             with open(tmp, "wb") as fh:
                 np.savez(fh, features=np.stack(feats))
@@ -163,7 +164,8 @@ def run_stage(ctx) -> dict:
                                  optimizer=opt, start_step=start, on_step=on_step)
         bar.close()
         out_dir = ctx.out_dir
-        save_corrector(out_dir / "corrector.pt", net, cfg.fit, {"graph_stage": graph_stage, "envmap_stage": env_stage})
+        save_corrector(out_dir / "corrector.pt", net, cfg.fit, {"graph_stage": graph_stage, "envmap_stage": env_stage,
+                                                             "fitted_light": light_fingerprint(env)})
         summary = {"stage": ctx.name, "graph_stage": graph_stage, "envmap_stage": env_stage,
                    "views": [v.name for v in views], "held_out_views": [views[i].name for i in held],
                    "fit_steps": cfg.fit.steps, "render_seconds": round(t_render, 1),

@@ -81,8 +81,10 @@ class EvalSettings:
     """Shadow rays meet the tracked objects' filled insides
     (:attr:`core.render.scenario.Scenario.object_solids`)."""
     corrector: bool = True
-    """Apply the run's scene corrector (the ``corrector`` stage) to the re-render and relit frames,
-    as a relight request does; False: the denoised PBR frames as they are."""
+    """Apply the run's scene corrector (the ``corrector`` stage) where a relight request would: to
+    the re-render under the recovered map (the light it was fitted under), not to the relit frames
+    under held-back maps (:func:`core.render.scenario._corrector_gate`); False: the denoised PBR
+    frames as they are."""
     object_shadow_t_min_m: float = 0.05
     """The same for objects an edit placed (:attr:`core.render.scenario.Scenario.object_shadow_t_min_m`;
     the evaluation renders no edits, so only a request that passes edits sees it)."""

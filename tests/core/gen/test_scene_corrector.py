@@ -9,7 +9,8 @@ import torch
 
 from core.errors import ModelLoadError, NumericalError, ShapeError
 from core.gen.scene_corrector import (FEATURES, CorrectorSettings, SceneCorrector, apply_corrector, fit_corrector,
-                                      frame_features, load_corrector, save_corrector)
+                                      frame_features, light_fingerprint, load_corrector,
+                                      save_corrector)
 
 
 def _gbuffers(rng, h=24, w=32):
@@ -128,6 +129,10 @@ def test_save_load_round_trip_and_bad_files(tmp_path):
     save_corrector(p, net, s, {"graph_stage": "joint"})
     back = load_corrector(p)
     np.testing.assert_allclose(apply_corrector(back, xs[0]), apply_corrector(net, xs[0]), atol=1e-7)
+    assert back.fitted_light is None  # a file without the light it was fitted under
+    env = np.random.default_rng(3).uniform(0, 5, (8, 16, 3)).astype(np.float32)
+    save_corrector(p, net, s, {"graph_stage": "joint", "fitted_light": light_fingerprint(env)})
+    assert load_corrector(p).fitted_light == light_fingerprint(env.astype(np.float64))  # float32 either way
     with pytest.raises(ModelLoadError, match="no scene corrector"):
         load_corrector(tmp_path / "missing.pt")
     (tmp_path / "junk.pt").write_bytes(b"not a checkpoint")
@@ -136,3 +141,16 @@ def test_save_load_round_trip_and_bad_files(tmp_path):
     torch.save({"format": "other"}, tmp_path / "other.pt")
     with pytest.raises(ModelLoadError, match="not a scene corrector"):
         load_corrector(tmp_path / "other.pt")
+
+
+def test_the_light_fingerprint_tells_maps_apart():
+    env = np.random.default_rng(4).uniform(0, 5, (8, 16, 3)).astype(np.float32)
+    fp = light_fingerprint(env)
+    assert light_fingerprint(env.copy()) == fp
+    nudged = env.copy()
+    nudged[3, 5, 1] = np.nextafter(nudged[3, 5, 1], np.float32(10))
+    assert light_fingerprint(nudged) != fp  # one ulp of one texel
+    assert light_fingerprint(np.roll(env, 1, axis=1)) != fp  # a rotation
+    assert light_fingerprint(env.reshape(16, 8, 3)) != fp  # the same values in another shape
+    with pytest.raises(ShapeError, match="envmap"):
+        light_fingerprint(env[..., :2])

@@ -12,7 +12,8 @@ import pytest
 
 from core.bundle import open_bundle
 from core.errors import ConfigError
-from core.render.scenario import Scenario, render_scenario, scene_corrector, views_from_frames
+from core.gen.scene_corrector import load_corrector
+from core.render.scenario import LightSpec, Scenario, render_scenario, scene_corrector, views_from_frames
 from core.stages.chain import RunDir, profile_settings, run_pipeline, run_stage
 
 pytestmark = pytest.mark.mitsuba
@@ -87,7 +88,10 @@ def test_a_relight_applies_the_fitted_corrector(tiny_scene, joint_run, tmp_path)
     graph, _sky, _st = run.load_scene()
     views = tuple(views_from_frames(b, "test")[:2])
     m = b.manifest
-    kw = dict(views=views, envmap=np.full((16, 32, 3), 0.5, np.float32), base_exposure=m.ldr_exposure,
+    from core.io.envmap_file import read_envmap
+
+    recovered = read_envmap(run.latest_envmap()[0])  # the capture's light, the corrector's own
+    kw = dict(views=views, envmap=recovered, base_exposure=m.ldr_exposure,
               gamma=m.ldr_gamma, rays_per_pixel=4, denoiser="none", outputs=("png",))
     feats: list = []
     plain = render_scenario(graph, Scenario(**kw), tmp_path / "plain", features_out=feats).result.frames
@@ -105,19 +109,37 @@ def test_a_relight_applies_the_fitted_corrector(tiny_scene, joint_run, tmp_path)
     assert np.isfinite(fixed).all() and fixed.min() >= 0 and fixed.max() <= 1
     with pytest.raises(ConfigError, match="corrector"):
         Scenario(**kw, corrector="not a corrector")
+    # it learnt the capture's light: under any other light it is not applied, and the metrics say why
+    other = {"another map": dict(envmap=np.full((16, 32, 3), 0.5, np.float32)), "rotated": dict(rotation_deg=90.0),
+             "scales": dict(sky_scale=0.5), "added lights": dict(lights=(LightSpec(kind="point", position=(0.0, 0.0, 3.0),
+                                                                                    intensity=10.0),))}
+    for why, change in other.items():
+        metrics = render_scenario(graph, Scenario(**{**kw, **change}, corrector=corrector),
+                                  tmp_path / why.replace(" ", "_")).metrics
+        assert metrics["corrector"].startswith("not applied") and why in metrics["corrector"], (why, metrics["corrector"])
+    assert render_scenario(graph, Scenario(**kw, rotation_deg=360.0, corrector=corrector), tmp_path / "full_turn"
+                           ).metrics["corrector"].startswith("applied")
+    unknown = load_corrector(root / "corrector" / "corrector.pt")
+    unknown.fitted_light = None  # a corrector of unknown light: the caller vouches for it
+    assert render_scenario(graph, Scenario(**{**kw, **other["another map"]}, corrector=unknown), tmp_path / "unknown"
+                           ).metrics["corrector"].startswith("applied")
     summary = json.loads((root / "corrector" / "summary.json").read_text())
     assert summary["graph_stage"] == "joint" and summary["envmap_stage"] == "joint"
 
 
-def test_the_relight_command_applies_it_at_the_capture_exposure_and_can_turn_it_off(tiny_scene, joint_run, tmp_path,
-                                                                                      capsys):
+def test_the_relight_command_applies_it_under_the_capture_light_and_can_turn_it_off(tiny_scene, joint_run, tmp_path,
+                                                                                       capsys):
     from core.cli import main
 
     root = tmp_path / "run"
     shutil.copytree(joint_run, root)
     assert main(["reconstruct", "--out", str(root), "--profile", "tiny", "--resume", "--stages", "corrector",
                  "--quiet"]) == 0
-    base = ["relight", str(root), "--envmap", "sunset", "--stop", "1", "--rays", "4", "--denoiser", "none"]
+    recovered = str(RunDir(root).latest_envmap()[0])
+    assert main(["relight", str(root), "--envmap", "sunset", "--exposure", "0", "--stop", "1", "--rays", "4",
+                 "--denoiser", "none", "--out", str(tmp_path / "sunset")]) == 0
+    assert "not applied: fitted under the capture's recovered map" in capsys.readouterr().out
+    base = ["relight", str(root), "--envmap", recovered, "--stop", "1", "--rays", "4", "--denoiser", "none"]
     assert main(base + ["--exposure", "0", "--out", str(tmp_path / "on")]) == 0
     assert "scene corrector: applied" in capsys.readouterr().out
     assert main(base + ["--exposure", "0", "--corrector", "off", "--out", str(tmp_path / "off")]) == 0
