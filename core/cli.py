@@ -18,7 +18,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from core.errors import CoreError
+from core.errors import ConfigError, CoreError
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_SCENE = REPO_ROOT / "data" / "scenes" / "default"
@@ -275,6 +275,10 @@ def _render_and_report(run, a, scenario, kind: str) -> int:
     return 0
 
 
+#: ``brdf relight --envmap recovered``: the run's own recovered map (the capture's light).
+RECOVERED_MAP = "recovered"
+
+
 def cmd_relight(a: argparse.Namespace) -> int:
     from core.io.hdri import load_hdri
     from core.render.scenario import Scenario
@@ -289,7 +293,15 @@ def cmd_relight(a: argparse.Namespace) -> int:
     corrector, note = scene_corrector(run) if a.corrector == "auto" else (None, "off (--corrector off)")
     if not a.quiet:
         print(f"scene corrector: {note}")
-    sc = Scenario(tuple(views), load_hdri(a.envmap), rotation_deg=a.rotation, lights=tuple(lights), edits=tuple(edits),
+    if a.envmap == RECOVERED_MAP:
+        env_path, _stage = run.latest_envmap()
+        if env_path is None:
+            raise ConfigError(f"--envmap {RECOVERED_MAP}: {run.root} has no recovered environment map (no pbr or "
+                              f"joint stage)")
+        envmap = load_hdri(str(env_path))
+    else:
+        envmap = load_hdri(a.envmap)
+    sc = Scenario(tuple(views), envmap, rotation_deg=a.rotation, lights=tuple(lights), edits=tuple(edits),
                   exposure_ev=_ev(a.exposure), base_exposure=m.ldr_exposure, gamma=m.ldr_gamma, rays_per_pixel=a.rays,
                   shadows=not a.no_shadows, denoiser=a.denoiser, fps=fps, corrector=corrector)
     return _render_and_report(run, a, sc, "relight")
@@ -539,12 +551,14 @@ def build_parser(extensions=()) -> argparse.ArgumentParser:
 
     rl = sub.add_parser("relight", help="render a reconstruction under another sky, lights and edits")
     shot_args(rl)
-    rl.add_argument("--envmap", required=True, help="bundled HDRI name (city, sunset, ...) or an .exr/.hdr file")
+    rl.add_argument("--envmap", required=True, help="bundled HDRI name (city, sunset, ...), an .exr/.hdr file, "
+                    f"or '{RECOVERED_MAP}': the run's recovered map (the capture's light: a new path or an edit "
+                    "under it; the scene corrector applies there)")
     rl.add_argument("--rotation", type=float, default=0.0, help="rotate the map about +z, degrees")
     rl.add_argument("--no-shadows", action="store_true", help="no ray-traced visibility (faster, no shadows)")
     rl.add_argument("--corrector", default="auto", choices=["auto", "off"], help="auto: apply the scene corrector "
                     "the run's corrector stage fitted on the capture, when it has one and the render is under the "
-                    "light it was fitted at (--envmap the run's recovered map file, no --rotation, no --lights, "
+                    "light it was fitted at (--envmap recovered, no --rotation, no --lights, "
                     "--exposure 0); off: the denoised PBR frames")
     rl.set_defaults(fn=cmd_relight)
 

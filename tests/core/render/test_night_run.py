@@ -86,3 +86,12 @@ def test_cli_info_night_export_and_insert_with_a_camera_path(tiny_run, tmp_path,
     assert main(["relight", str(tiny_run), "--envmap", "city", "--out", str(rel), "--edits", str(edits),
                  "--quiet"]) == 2
     assert "unknown field" in capsys.readouterr().err
+
+
+def test_relight_under_the_recovered_map_needs_one(tiny_run, tmp_path, capsys):
+    """``--envmap recovered`` names the run's own map; a volume-only run has none, which is said
+    (the corrector test relights a run that has one)."""
+    assert main(["relight", str(tiny_run), "--envmap", "recovered", "--out", str(tmp_path / "rel"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "--envmap recovered" in err and "no recovered environment map" in err
+    assert not (tmp_path / "rel").exists()
