@@ -500,9 +500,7 @@ def street_lights_for(bundle, graph=None, *, placement: str = "detect", position
 def scene_corrector(run):
     """``(SceneCorrector or None, note)``: the corrector the run's ``corrector`` stage fitted on
     its capture, or None with the reason."""
-    from core.gen.scene_corrector import load_corrector
-
-    from core.gen.scene_corrector import light_fingerprint
+    from core.gen.scene_corrector import light_fingerprint, load_corrector
     from core.io.envmap_file import read_envmap
 
     path = run.stage_dir("corrector") / "corrector.pt"
