@@ -12,7 +12,7 @@ import pytest
 
 from core.bundle import open_bundle
 from core.errors import ConfigError
-from core.gen.scene_corrector import load_corrector
+from core.gen.scene_corrector import light_fingerprint, load_corrector
 from core.render.scenario import LightSpec, Scenario, render_scenario, scene_corrector, views_from_frames
 from core.stages.chain import RunDir, profile_settings, run_pipeline, run_stage
 
@@ -119,7 +119,17 @@ def test_a_relight_applies_the_fitted_corrector(tiny_scene, joint_run, tmp_path)
         assert metrics["corrector"].startswith("not applied") and why in metrics["corrector"], (why, metrics["corrector"])
     assert render_scenario(graph, Scenario(**kw, rotation_deg=360.0, corrector=corrector), tmp_path / "full_turn"
                            ).metrics["corrector"].startswith("applied")
-    unknown = load_corrector(root / "corrector" / "corrector.pt")
+    # a file written before the light was recorded: scene_corrector takes the run's recovered map
+    import torch
+
+    f = root / "corrector" / "corrector.pt"
+    d = torch.load(f, map_location="cpu", weights_only=True)
+    assert d["meta"]["fitted_light"] == light_fingerprint(recovered)
+    del d["meta"]["fitted_light"]
+    torch.save(d, f)
+    assert load_corrector(f).fitted_light is None
+    assert scene_corrector(run)[0].fitted_light == light_fingerprint(recovered)
+    unknown = load_corrector(f)
     unknown.fitted_light = None  # a corrector of unknown light: the caller vouches for it
     assert render_scenario(graph, Scenario(**{**kw, **other["another map"]}, corrector=unknown), tmp_path / "unknown"
                            ).metrics["corrector"].startswith("applied")
