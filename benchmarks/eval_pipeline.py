@@ -47,7 +47,8 @@ STREET_SETTINGS = ("relight_every=4", "num_frames=16", "spp=128")
 #: evaluation's renders, and ``seed``: ``(row, stages)`` whose finished stage directories are copied
 #: from that row's run of the same street first (the same stage with the same settings is not
 #: run twice: an ablation row differs from its seed only in what it leaves out).
-ALL_STAGES = DEFAULT_STAGES  # the paper's five: what the full row runs (the corrector is asked for by name)
+ALL_STAGES = DEFAULT_STAGES  # the paper's five and the corrector: what the full row runs
+PAPER_STAGES = tuple(STAGES[:5])
 NO_PRIORS = {"lambda_normal": 0.0, "lambda_albedo": 0.0, "lambda_roughness": 0.0, "lambda_metallic": 0.0}
 ROWS = {
     "full": {"stages": None, "overrides": {}, "denoiser": "oidn", "seed": None},
@@ -69,9 +70,10 @@ ROWS = {
     # ... and with the generative forward pass (the diffusion model, SDEdit from the physical
     # render) instead of the product's default OIDN denoiser
     "gen_render": {"stages": None, "overrides": {}, "denoiser": "diffusion", "seed": ("full", ALL_STAGES)},
-    # not the paper's: the full row plus the opt-in corrector stage (core/stages/corrector.py),
-    # applied only under the light it was fitted at: it moves the re-render, nothing else
-    "full_corrector": {"stages": list(STAGES), "overrides": {}, "denoiser": "oidn", "seed": ("full", ALL_STAGES)},
+    # the full row without the corrector stage (core/stages/corrector.py, not the paper's; applied
+    # only under the light it was fitted at, so it moves the re-render and nothing else)
+    "no_corrector": {"stages": list(PAPER_STAGES), "overrides": {}, "denoiser": "oidn",
+                     "seed": ("full", PAPER_STAGES)},
 }
 KEYS = ("albedo_si_psnr", "roughness_rmse", "metallic_rmse", "normal_mae_deg", "nvs_psnr", "nvs_ssim", "nvs_flip",
         "rerender_psnr", "relight_psnr", "relight_ssim", "relight_flip", "relight_unrelit_input_ssim",

@@ -509,12 +509,12 @@ def build_parser(extensions=()) -> argparse.ArgumentParser:
     r.add_argument("--quiet", action="store_true")
     r.set_defaults(fn=cmd_render)
 
-    rc = sub.add_parser("reconstruct", help="run the inverse-rendering pipeline (the paper's five stages)")
+    rc = sub.add_parser("reconstruct", help="run the inverse-rendering pipeline (the paper's five stages, then the scene corrector)")
     rc.add_argument("--scene", default=None, help="bundle dir or archive (default: with --resume, the run's own "
                     "scene; else the bundled scene)")
     rc.add_argument("--profile", default="quick", help="tiny | quick | benchmark | paper (default quick)")
     rc.add_argument("--stages", default=None, help="comma-separated subset of volume,generative_refine,volume2,"
-                    "pbr,joint,corrector (default the paper's five, in chain order; the corrector only when named)")
+                    "pbr,joint,corrector (default all six, in chain order; the corrector is applied only under the capture's light)")
     rc.add_argument("--resume", action="store_true", help="continue the run in --out (done stages are kept)")
     rc.add_argument("--out", default=None, help="run directory (default runs/<scene>_<profile>)")
     rc.add_argument("--set", action="append", metavar="STAGE.FIELD=VALUE", help="override a stage setting")

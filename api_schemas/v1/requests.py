@@ -296,11 +296,12 @@ class ReconstructRequest(Model):
 
     profile: Literal["tiny", "quick", "benchmark", "paper"] = "quick"
     stages: list[Literal["volume", "generative_refine", "volume2", "pbr", "joint", "corrector"]] = Field(
-        default_factory=lambda: ["volume", "generative_refine", "volume2", "pbr", "joint"], min_length=1,
+        default_factory=lambda: ["volume", "generative_refine", "volume2", "pbr", "joint", "corrector"], min_length=1,
         max_length=6,
         description="Stages to run, each its own job, in chain order: volume -> generative_refine -> volume2 -> "
                     "pbr -> joint (the paper's chain) -> corrector (a per-scene corrector of the PBR pass fitted "
-                    "on the capture; not the paper's, asked for by name); default the paper's five. A stage needs the stages it reads in the same "
+                    "on the capture and applied only under the capture's light; not the paper's); default all six. A stage needs the "
+                    "stages it reads in the same "
                     "request (409 otherwise).")
     iterations_scale: float = Field(1.0, gt=0.0, le=100.0, allow_inf_nan=False)
 

@@ -3,9 +3,11 @@
 Not a stage of the paper (``docs/DESIGN.md``, departures). After the joint stage, the training
 views are rendered through the path of a relight request (:func:`core.render.scenario.render_scenario`:
 the PBR pass under the recovered map at the capture's exposure, the denoiser) and the corrector
-is fitted to map each denoised frame and its G-buffers to the captured frame. Every later render
-of the scene (relight, new paths, the evaluation) applies it; the night clip does not (it was
-fitted under daylight).
+is fitted to map each denoised frame and its G-buffers to the captured frame. A later render
+applies it only under the light it was fitted at (the recovered map at the capture's exposure:
+the evaluation's re-render, a new path or an edit under ``--envmap recovered``); a relight under
+another map, a rotation, added lights, another exposure and the night clip render without it.
+It is in the default chain (``DEFAULT_STAGES``) since it moves nothing but those renders.
 
 It reads the capture's frames and the run's own scene graph and map; never ground truth.
 

@@ -675,7 +675,7 @@ def test_volume_stage_on_degenerate_lidar(tmp_path, mode):
                          ids=["all-black", "saturated-one-frame", "no-sky-masks"])
 def test_whole_chain_without_lidar_stays_finite(tmp_path, kw):
     """All five stages (the inverse model's priors, their depth as the initialisation, the
-    generative refinement, volume2, pbr, joint) and the opt-in corrector on a bundle without
+    generative refinement, volume2, pbr, joint) and the corrector on a bundle without
     LiDAR, tiny profile scaled down: every logged loss, the refinement's summary, the final map
     and the corrector's scores are finite."""
     from core.io.envmap_file import read_envmap
