@@ -302,9 +302,18 @@ def cmd_relight(a: argparse.Namespace) -> int:
     else:
         envmap = load_hdri(a.envmap)
     sc = Scenario(tuple(views), envmap, rotation_deg=a.rotation, lights=tuple(lights), edits=tuple(edits),
-                  exposure_ev=_ev(a.exposure), base_exposure=m.ldr_exposure, gamma=m.ldr_gamma, rays_per_pixel=a.rays,
-                  shadows=not a.no_shadows, denoiser=a.denoiser, fps=fps, corrector=corrector)
+                  exposure_ev=_relight_ev(a.exposure, a.envmap), base_exposure=m.ldr_exposure, gamma=m.ldr_gamma,
+                  rays_per_pixel=a.rays, shadows=not a.no_shadows, denoiser=a.denoiser, fps=fps, corrector=corrector)
     return _render_and_report(run, a, sc, "relight")
+
+
+def _relight_ev(v: str | None, envmap: str) -> float | None:
+    """Relight's ``--exposure``: as :func:`_ev`; not given, the capture's own exposure (0 stops) under
+    the recovered map (the capture's light: a new path or an edit should look like the capture, and
+    the scene corrector was fitted at that exposure), else automatic."""
+    if v is None:
+        return 0.0 if envmap == RECOVERED_MAP else None
+    return _ev(v)
 
 
 def _ev(v: str | None) -> float | None:
@@ -525,8 +534,9 @@ def build_parser(extensions=()) -> argparse.ArgumentParser:
     def shot_args(x):
         x.add_argument("run", help="a reconstruction run directory (brdf reconstruct --out)")
         x.add_argument("--out", required=True, help="output directory (EXR frames, MP4, preview PNG)")
-        x.add_argument("--exposure", default="auto", help="'auto' (default: one exposure for the clip from its HDR "
-                       "frames) or stops on top of the capture's exposure")
+        x.add_argument("--exposure", default=None, help="'auto' (one exposure for the clip from its HDR frames) or "
+                       "stops on top of the capture's exposure; default auto, except relight under --envmap "
+                       f"{RECOVERED_MAP}: 0, the capture's own exposure (where the scene corrector applies)")
         x.add_argument("--lights", default=None, help="JSON file: a list of lights (kind point|spot, position, "
                        "intensity in candela, direction, color, cone_inner_deg, cone_outer_deg, attach_to)")
         x.add_argument("--edits", default=None, help="JSON file: a list of object edits (op insert|move|remove, "

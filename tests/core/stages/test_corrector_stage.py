@@ -154,8 +154,15 @@ def test_the_relight_command_applies_it_under_the_capture_light_and_can_turn_it_
     assert main(base + ["--exposure", "0", "--corrector", "off", "--out", str(tmp_path / "off")]) == 0
     out = capsys.readouterr().out
     assert "scene corrector: off" in out and "applied" not in out
-    assert main(base + ["--out", str(tmp_path / "auto")]) == 0  # automatic exposure: not applied, said so
+    assert main(base + ["--exposure", "auto", "--out", str(tmp_path / "auto")]) == 0  # automatic: not applied, said so
     assert "not applied" in capsys.readouterr().out
+    # no --exposure under the recovered map: the capture's own exposure, so the corrector applies
+    assert main(base + ["--out", str(tmp_path / "default")]) == 0
+    out = capsys.readouterr().out
+    assert "scene corrector: applied" in out and "exposure: fixed EV +0.00" in out, out
+    assert main(["relight", str(root), "--envmap", "sunset", "--stop", "1", "--rays", "4", "--denoiser", "none",
+                 "--out", str(tmp_path / "sunset_auto")]) == 0  # another map: automatic, as before
+    assert "exposure: auto EV" in capsys.readouterr().out
     from core.io.images import read_image
 
     on, off = read_image(tmp_path / "on" / "preview.png"), read_image(tmp_path / "off" / "preview.png")
