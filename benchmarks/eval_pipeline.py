@@ -31,7 +31,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from core.stages.chain import DEFAULT_STAGES, STAGES  # noqa: E402
+from core.stages.chain import DEFAULT_STAGES, PAPER_STAGES  # noqa: E402
 
 #: name -> (role, seed, map, rotation in degrees). City and sunrise are the sunny maps.
 STREETS = {
@@ -48,7 +48,6 @@ STREET_SETTINGS = ("relight_every=4", "num_frames=16", "spp=128")
 #: from that row's run of the same street first (the same stage with the same settings is not
 #: run twice: an ablation row differs from its seed only in what it leaves out).
 ALL_STAGES = DEFAULT_STAGES  # the paper's five and the corrector: what the full row runs
-PAPER_STAGES = tuple(STAGES[:5])
 NO_PRIORS = {"lambda_normal": 0.0, "lambda_albedo": 0.0, "lambda_roughness": 0.0, "lambda_metallic": 0.0}
 ROWS = {
     "full": {"stages": None, "overrides": {}, "denoiser": "oidn", "seed": None},

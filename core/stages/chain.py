@@ -49,12 +49,14 @@ from core.errors import ConfigError, FormatError
 
 #: The paper's stages in chain order, then the corrector (a departure: ``docs/DESIGN.md``).
 STAGES = ("volume", "generative_refine", "volume2", "pbr", "joint", "corrector")
+#: The paper's five stages alone (the chain without the corrector).
+PAPER_STAGES = STAGES[:5]
 #: What runs when no stages are named: the paper's five and the corrector. The corrector is applied
 #: only under the light it was fitted at (the re-render, a new path or an edit under the capture's
 #: light), so it moves nothing else; on the development scenes (quick profile, test views,
 #: ``benchmarks/results/corrector_steps_dev.json``) it raised the re-render from 23.19 / 20.48 /
 #: 22.47 dB (dev1, dev2, default; none) to 24.15 / 23.93 / 24.47 at 800 fit steps and 24.81 / 25.64
-#: on dev1 / dev2 at 2400. The five alone: ``--stages volume,generative_refine,volume2,pbr,joint``.
+#: on dev1 / dev2 at 2400. The five alone (:data:`PAPER_STAGES`): ``--stages volume,generative_refine,volume2,pbr,joint``.
 DEFAULT_STAGES = STAGES
 #: Profiles: ``tiny`` (tests, CI), ``quick`` (the default: the knee of the run-time-against-error
 #: front, ``benchmarks/results/runtime_vs_error.json``), ``benchmark`` (the figures: the cheapest
@@ -163,6 +165,9 @@ def _profile_table() -> dict[str, dict[str, Any]]:
     from core.train.init_lidar import LidarInitConfig
 
     tiny_init = LidarInitConfig(max_background_points=3000, max_object_points=300)
+    # the corrector of quick and benchmark: 2400 fit steps (not 800), chosen on dev1 / dev2 at quick
+    # (benchmarks/results/corrector_steps_dev.json)
+    corrector_fit = CorrectorSettings(steps=2400)
     return {
         "tiny": {
             "volume": VolumeSettings(iterations=60, densify_from=20, densify_until=50, densify_every=15, init=tiny_init),
@@ -184,8 +189,7 @@ def _profile_table() -> dict[str, dict[str, Any]]:
                                       init_from_graph=True, density=DensityConfig(max_gaussians=80_000)),
             "pbr": PBRStageConfig(iterations=75),
             "joint": JointSettings(iterations=150),
-            # 2400 fit steps (not 800): chosen on dev1 / dev2 at this profile (DEFAULT_STAGES)
-            "corrector": CorrectorStageSettings(fit=CorrectorSettings(steps=2400)),
+            "corrector": CorrectorStageSettings(fit=corrector_fit),
         },
         # benchmark: the front's plateau (2x its iterations, or 7000 + 3000 volume iterations with
         # 200k Gaussians, scored within run-to-run spread of it; 335 CPU s, 18.9 dB on the default scene)
@@ -196,7 +200,7 @@ def _profile_table() -> dict[str, dict[str, Any]]:
                                       density=DensityConfig(max_gaussians=80_000)),
             "pbr": PBRStageConfig(),
             "joint": JointSettings(),
-            "corrector": CorrectorStageSettings(fit=CorrectorSettings(steps=2400)),
+            "corrector": CorrectorStageSettings(fit=corrector_fit),
         },
         # The paper's counts (supplement): 30k + 30k volume iterations, 5k PBR, 20k joint,
         # 512 rays and 2048 pixels per step. For a GPU host; hours per stage on these CPUs.
@@ -505,5 +509,5 @@ def run_pipeline(scene: str | Path, run_dir: str | Path, profile: str = "quick",
     return out
 
 
-__all__ = ["STAGES", "DEFAULT_STAGES", "PROFILE_NAMES", "StageSpec", "StageContext", "RunDir", "stage_spec", "profile_settings",
+__all__ = ["STAGES", "PAPER_STAGES", "DEFAULT_STAGES", "PROFILE_NAMES", "StageSpec", "StageContext", "RunDir", "stage_spec", "profile_settings",
            "run_stage", "run_pipeline", "resolve_stages", "scale_iterations", "write_json"]
